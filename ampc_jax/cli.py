@@ -1,0 +1,282 @@
+"""The ``ampc`` command line.
+
+``ampc solve PROBLEM.json`` solves one MPC step of a problem file with the
+integrated MPC or Local Explicit and prints a table or (``--json``) one JSON
+object. Errors go to stderr with a non-zero exit code (2: bad input).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["main"]
+
+EXAMPLES = Path(__file__).parent / "examples"
+
+
+def _fail(msg: str, code: int = 2) -> int:
+    print(f"ampc: error: {msg}", file=sys.stderr)
+    return code
+
+
+def _resolve_problem(path: str) -> Path:
+    p = Path(path)
+    if not p.exists() and (EXAMPLES / path).exists():
+        return EXAMPLES / path
+    if not p.exists() and (EXAMPLES / f"{path}.json").exists():
+        return EXAMPLES / f"{path}.json"
+    return p
+
+
+def _parse_rho(text: str) -> float | None:
+    if text == "auto":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"--rho: expected 'auto' or a positive number, got {text!r}"
+        ) from None
+    if not np.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"--rho: must be a positive finite number, got {text!r}")
+    return value
+
+
+def _positive(kind: type) -> Any:
+    def parse(text: str) -> Any:
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"expected a positive {kind.__name__}, got {text!r}"
+            ) from None
+        if not v > 0:
+            raise argparse.ArgumentTypeError(f"expected a positive {kind.__name__}, got {text!r}")
+        return v
+
+    return parse
+
+
+def _warm_state(path: str, solver: Any, setup: Any) -> Any:
+    """Read a previous ``--json`` output's ``warm_state`` and shift it one step."""
+    import jax.numpy as jnp
+
+    from .formulations import ADMMState, shift_state
+
+    try:
+        d = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"--warm-start {path}: cannot read a JSON result ({exc})") from exc
+    ws = d.get("warm_state") if isinstance(d, dict) else None
+    if not isinstance(ws, dict):
+        raise ValueError(
+            f"--warm-start {path}: no 'warm_state' object; pass the --json output of a "
+            f"previous 'ampc solve --formulation local_explicit'"
+        )
+    T = solver.topology
+    dt = setup.rho.dtype
+    try:
+        U = tuple(jnp.asarray(ws["U"][j], dt).reshape(T.horizon, -1) for j in range(T.n_objectives))
+        gamma = tuple(
+            jnp.asarray(ws["gamma"][j], dt).reshape(T.horizon, -1) for j in range(T.n_objectives)
+        )
+        Z = jnp.asarray(ws["Z"], dt).reshape(T.horizon, T.n_c)
+    except (KeyError, IndexError, TypeError, ValueError) as exc:
+        raise ValueError(
+            f"--warm-start {path}: warm_state does not match this problem ({exc})"
+        ) from exc
+    for j in range(T.n_objectives):
+        if U[j].shape != (T.horizon, setup.Ain[j].shape[1]) or gamma[j].shape != (
+            T.horizon,
+            setup.Ain[j].shape[0],
+        ):
+            raise ValueError(f"--warm-start {path}: warm_state does not match this problem's sizes")
+    state = ADMMState(
+        U=U,
+        Z=Z,
+        gamma=gamma,
+        iteration=jnp.zeros((), jnp.int32),
+        primal=jnp.zeros(T.n_objectives, dt),
+        dual=jnp.zeros(T.n_objectives, dt),
+    )
+    return shift_state(state)
+
+
+def _timed(fn: Any, *args: Any, repeats: int = 7) -> tuple[Any, float]:
+    """Run a compiled function once to warm up, then return its result and median time."""
+    import jax
+
+    res = jax.block_until_ready(fn(*args))
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return res, float(np.median(times))
+
+
+def cmd_solve(args: argparse.Namespace) -> int:
+    import jax
+
+    if not args.float32:
+        jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+
+    from .formulations import LocalExplicit
+    from .integrated import IntegratedADMM, solve_reference
+    from .results import status_name
+    from .topology import Problem, ProblemError
+
+    path = _resolve_problem(args.problem)
+    try:
+        problem = Problem.from_json(path)
+        T = problem.topology
+        dtype = jnp.float32 if args.float32 else jnp.float64
+        data = problem.data(dtype)
+        tol = args.tol
+        compile_s = 0.0
+        if args.formulation == "local_explicit":
+            solver = LocalExplicit(T, max_iter=args.max_iter, tol_primal=tol, tol_dual=tol)
+            rho = None if args.rho is None else jnp.full((T.n_objectives,), args.rho, dtype)
+            warm = None
+            if args.warm_start:
+                warm = _warm_state(args.warm_start, solver, solver.setup(data, rho))
+            fn = jax.jit(solver.solve)
+            t0 = time.perf_counter()
+            compiled = fn.lower(data, rho, warm).compile()
+            compile_s = time.perf_counter() - t0
+            res, solve_s = _timed(compiled, data, rho, warm)
+            rho_out = {
+                n: float(r) for n, r in zip(T.objective_names, np.asarray(res.rho), strict=True)
+            }
+        else:
+            if args.warm_start:
+                return _fail("--warm-start applies to --formulation local_explicit only")
+            if args.solver == "jax":
+                solver = IntegratedADMM(T, max_iter=args.max_iter, tol_primal=tol, tol_dual=tol)
+                rho = None if args.rho is None else jnp.asarray([args.rho], dtype)
+                fn = jax.jit(solver.solve)
+                t0 = time.perf_counter()
+                compiled = fn.lower(data, rho).compile()
+                compile_s = time.perf_counter() - t0
+                res, solve_s = _timed(compiled, data, rho)
+                rho_out = {"integrated": float(np.asarray(res.rho)[0])}
+            else:
+                res = solve_reference(T, data, args.solver, eps=min(tol, 1e-6))
+                solve_s = float(res.state)
+                rho_out = {}
+    except ProblemError as exc:
+        return _fail(f"{path}: {exc}")
+    except ValueError as exc:
+        return _fail(str(exc))
+
+    per_agent = res.per_agent(T)
+    u = np.asarray(res.u)
+    out: dict[str, Any] = {
+        "formulation": args.formulation,
+        "u0": {k: v[0].tolist() for k, v in per_agent.items()},
+        "u": {k: v.tolist() for k, v in per_agent.items()},
+        "iterations": int(res.iterations),
+        "converged": bool(res.converged),
+        "status": status_name(res.status),
+        "primal_residual": float(np.max(np.asarray(res.primal_residual))),
+        "dual_residual": float(np.max(np.asarray(res.dual_residual))),
+        "rho": rho_out,
+        "solve_time_s": solve_s,
+        "compile_time_s": compile_s,
+    }
+    if args.formulation == "local_explicit":
+        st = res.state
+        out["warm_state"] = {
+            "U": [np.asarray(x).tolist() for x in st.U],
+            "Z": np.asarray(st.Z).tolist(),
+            "gamma": [np.asarray(x).tolist() for x in st.gamma],
+        }
+    if not np.all(np.isfinite(u)):
+        out["u0"] = {k: None for k in per_agent}
+    if args.json:
+        print(json.dumps(out))
+    else:
+        _print_table(out, T)
+    return 0 if res.status in (0, 1) else 1
+
+
+def _print_table(out: dict[str, Any], T: Any) -> None:
+    print(f"formulation  {out['formulation']}")
+    print(
+        f"status       {out['status']} after {out['iterations']} iterations "
+        f"(converged: {out['converged']})"
+    )
+    print(f"residuals    primal {out['primal_residual']:.3g}  dual {out['dual_residual']:.3g}")
+    if out["rho"]:
+        print("rho          " + "  ".join(f"{k}={v:.4g}" for k, v in out["rho"].items()))
+    print(
+        f"solve time   {out['solve_time_s'] * 1e3:.3f} ms (compile {out['compile_time_s']:.2f} s)"
+    )
+    print()
+    width = max(len(n) for n in T.agent_names)
+    print(f"{'agent':<{width}}  first-step inputs U^(0)")
+    for name, vals in out["u0"].items():
+        text = "  ".join(f"{v:12.5g}" for v in vals) if vals is not None else "non-finite"
+        print(f"{name:<{width}}  {text}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="ampc", description="Multi-objective agent-based MPC (Local Explicit ADMM) in JAX."
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("solve", help="solve one MPC step of a JSON problem file")
+    p.add_argument("problem", help="problem file (JSON), or the name of a shipped example")
+    p.add_argument(
+        "--formulation", choices=["integrated", "local_explicit"], default="local_explicit"
+    )
+    p.add_argument("--rho", type=_parse_rho, default=None, help="'auto' (eq.opt_ro) or a value")
+    p.add_argument(
+        "--tol", type=_positive(float), default=1e-6, help="eps_r = eps_s (squared norms)"
+    )
+    p.add_argument("--max-iter", type=_positive(int), default=1000)
+    p.add_argument(
+        "--warm-start", metavar="FILE", help="a previous --json result to shift and reuse"
+    )
+    p.add_argument(
+        "--solver",
+        choices=["clarabel", "osqp", "jax"],
+        default="clarabel",
+        help="integrated formulation only: the reference solver",
+    )
+    p.add_argument("--float32", action="store_true", help="solve in float32 (default float64)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=cmd_solve)
+
+    _add_vehicle_commands(sub)
+    return parser
+
+
+def _add_vehicle_commands(sub: Any) -> None:
+    try:
+        from .simulation import add_cli_commands
+    except ImportError:
+        return
+    add_cli_commands(sub)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args))
+    except KeyboardInterrupt:
+        return _fail("interrupted", 130)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

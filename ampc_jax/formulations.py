@@ -1,0 +1,372 @@
+"""Formulation 3, Local Explicit (eq.integMPC_F3 to eq.F3_multiplier), in pure JAX.
+
+The integrated MPC is split into one local problem per objective O_j over the
+copies U_j of the inputs of its agent group S_j. The constraints become
+equalities with a shared non-negative slack Z (eq.integMPC_F3)::
+
+    Abar_j U_j - bbar_j + Z_j = 0,   Z >= 0,
+
+and consensus ADMM iterates, per objective j and constraint row c:
+
+* local update (eq.F3_primal), a closed-form solve with a matrix factorised
+  once per control step::
+
+      U_j = -(H_j + rho_j Abar_j' Abar_j)^-1 [E_j + Abar_j' (rho_j (Z_j - bbar_j) + gamma_j)]
+
+* global update, the max-projection (eq.F3_dual) in its exact form for
+  per-objective rho_j (NOTES item 14: the rho-weighted average; the printed
+  equal-weight average converges to the wrong point when the rho_j differ)::
+
+      v_jc = (-Abar_j U_j - gamma_j / rho_j + bbar_j)_c
+      Z_c  = max(0, sum_j rho_j v_jc / sum_j rho_j)       (j over objectives carrying c)
+
+* dual update (eq.F3_multiplier)::
+
+      gamma_j += rho_j (Abar_j U_j - bbar_j + Z_j)
+
+* stopping rule (eq.Convergence, per objective, NOTES items 6 and 17)::
+
+      ||r_j||^2 = ||Abar_j U_j - bbar_j + Z_j||^2 <= eps_r,
+      ||s_j||^2 = ||rho_j (Z_j^q - Z_j^(q-1))||^2 <= eps_s.
+
+Objective j's local cost carries its outputs' tracking cost and the input
+weights of its agents shared out as R_(i) / m_(i) (eq.F1_obj with NOTES item 8).
+Objective j carries the constraint rows whose agents all lie in S_j
+(:meth:`Topology.group_rows`); a shared agent's box rows are shared by all its
+objectives, which is what makes their copies agree (NOTES item 10).
+
+The default rho_j is eq.opt_ro (:func:`optimal_rho`).
+
+Everything here handles one problem; batch with ``jax.vmap`` over
+:class:`~ampc_jax.topology.ProblemData` (see :mod:`ampc_jax.batch`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+import numpy as np
+
+from .prediction import prediction_matrices, quadratic_cost
+from .results import SolveResult
+from .topology import ProblemData, Topology
+
+__all__ = [
+    "ADMMState",
+    "LocalExplicit",
+    "LocalSetup",
+    "local_costs",
+    "optimal_rho",
+    "shift_state",
+]
+
+
+class LocalSetup(NamedTuple):
+    """Per-control-step data of Local Explicit, built and factorised once.
+
+    Tuples run over objectives j; n_j = N_p * n_u,j and n_cj = rows of A_in,j.
+
+    H : (n_j, n_j) H_j.   E : (n_j,) E_j.
+    Ain : (n_cj, n_uj) per-step rows A_in,j (Abar_j = I_{N_p} (x) A_in,j).
+    bin : (N_p, n_cj) bbar_j, step by step.
+    rho : (n_obj,) rho_j.
+    chol : (n_j, n_j) lower Cholesky factor of H_j + rho_j Abar_j' Abar_j.
+    den : (n_c,) sum of rho_j over the objectives carrying each row.
+    lb, ub : (N_p, n_u) bounds, to project the consensus output.
+    """
+
+    H: tuple
+    E: tuple
+    Ain: tuple
+    bin: tuple
+    rho: Any
+    chol: tuple
+    den: Any
+    lb: Any
+    ub: Any
+
+
+class ADMMState(NamedTuple):
+    """Iterate of Local Explicit.
+
+    U : tuple over objectives of (N_p, n_uj) local inputs U_j.
+    Z : (N_p, n_c) global slack.
+    gamma : tuple over objectives of (N_p, n_cj) multipliers gamma_j.
+    iteration : () int32.
+    primal, dual : (n_obj,) ||r_j||^2 and ||s_j||^2 of the last iteration.
+    """
+
+    U: tuple
+    Z: Any
+    gamma: tuple
+    iteration: Any
+    primal: Any
+    dual: Any
+
+
+def local_costs(topology: Topology, data: ProblemData) -> tuple[tuple, tuple]:
+    """(H_j, E_j) for every objective (eq.F3_primal_1, NOTES items 8, 18, 19)."""
+    T = topology
+    mult = T.multiplicity
+    H, E = [], []
+    for j in range(T.n_objectives):
+        cols = np.asarray(T.group_columns(j))
+        scale = np.concatenate([np.full(T.agent_sizes[i], 1.0 / mult[i]) for i in T.groups[j]])
+        R_j = data.R[np.ix_(cols, cols)] * jnp.asarray(scale, data.R.dtype)[:, None]
+        pred = prediction_matrices(data.A, data.B[:, cols], data.C[j], T.horizon)
+        Hj, Ej = quadratic_cost(pred, data.Q[j], R_j, data.x0, data.w, data.ref[j])
+        H.append(Hj)
+        E.append(Ej)
+    return tuple(H), tuple(E)
+
+
+def optimal_rho(H: Any, Ain: Any, horizon: int, rank: int | None = None) -> Any:
+    """eq.opt_ro: rho* = 1 / sqrt(lambda_1 lambda_n) of M = Abar H^-1 Abar'.
+
+    lambda_1 and lambda_n are the smallest non-zero and the largest eigenvalue
+    of M. The non-zero eigenvalues of M are those of H^-1 Abar'Abar (same
+    non-zero spectrum of XY and YX).
+
+    * Full column rank A_in,j (every bounded input; ``rank is None``): all of
+      H^-1 Abar'Abar's eigenvalues are non-zero. With Abar'Abar = L L' (block
+      diagonal, L = I (x) chol(A_in,j' A_in,j)) they are 1/mu for mu the
+      eigenvalues of L^-1 H L^-T, so rho* = sqrt(mu_min mu_max): no
+      threshold, so float32 does not pick rounding noise (jax-facts). For
+      two-sided boxes this is sqrt(lambda_min(H) lambda_max(H)) / 2 (NOTES 16).
+    * Otherwise ``rank`` = rank(A_in,j) per step gives the number of non-zero
+      eigenvalues, N_p * rank, of L_H^-1 Abar'Abar L_H^-T (L_H = chol(H)):
+      the known rank replaces a numerical threshold.
+    """
+    n = H.shape[0]
+    nu = n // horizon
+    AtA = Ain.T @ Ain
+    if rank is None:
+        La = jnp.linalg.cholesky(AtA)
+        Li = jsl.solve_triangular(La, jnp.eye(nu, dtype=H.dtype), lower=True)
+        Hb = H.reshape(horizon, nu, horizon, nu)
+        G = jnp.einsum("ab,kbld,cd->kalc", Li, Hb, Li).reshape(n, n)
+        mu = jnp.linalg.eigvalsh(0.5 * (G + G.T))
+        mu_min = jnp.maximum(mu[0], jnp.finfo(H.dtype).eps * mu[-1])
+        return jnp.sqrt(mu_min * mu[-1])
+    LH = jnp.linalg.cholesky(H)
+    M = jnp.kron(jnp.eye(horizon, dtype=H.dtype), AtA)
+    X = jsl.solve_triangular(LH, M, lower=True)
+    G = jsl.solve_triangular(LH, X.T, lower=True)
+    lam = jnp.linalg.eigvalsh(0.5 * (G + G.T))
+    nonzero = horizon * rank
+    return 1.0 / jnp.sqrt(lam[n - nonzero] * lam[-1])
+
+
+def shift_state(state: ADMMState) -> ADMMState:
+    """Warm start: the previous step's iterate shifted one step along the horizon.
+
+    Step k+1 becomes step k; the last step is repeated.
+    """
+
+    def sh(x: Any) -> Any:
+        return jnp.concatenate([x[1:], x[-1:]], axis=0)
+
+    inf = jnp.full_like(state.primal, jnp.inf)
+    return ADMMState(
+        U=tuple(sh(u) for u in state.U),
+        Z=sh(state.Z),
+        gamma=tuple(sh(g) for g in state.gamma),
+        iteration=jnp.zeros((), jnp.int32),
+        primal=inf,
+        dual=inf,
+    )
+
+
+@dataclass(frozen=True)
+class LocalExplicit:
+    """Local Explicit solver for one :class:`Topology` (static, hashable).
+
+    Parameters
+    ----------
+    topology : the MACS structure.
+    max_iter : iteration cap of the ``while_loop`` runner.
+    tol_primal, tol_dual : eps_r and eps_s of eq.Convergence (squared norms).
+
+    Use :meth:`solve` for deployment (early stop) and :meth:`solve_fixed` for
+    differentiation (fixed iteration count under ``lax.scan``). Both are pure
+    and jittable; ``jax.jit(solver.solve)`` compiles one control step.
+    """
+
+    topology: Topology
+    max_iter: int = 500
+    tol_primal: float = 1e-6
+    tol_dual: float = 1e-6
+
+    def __post_init__(self) -> None:
+        self.topology.check_local_explicit()
+
+    # -- structure --------------------------------------------------------------
+    def _rows(self, j: int) -> np.ndarray:
+        return np.asarray(self.topology.group_rows(j), dtype=np.int32)
+
+    # -- per-step setup -----------------------------------------------------------
+    def setup(self, data: ProblemData, rho: Any = None) -> LocalSetup:
+        """Build H_j, E_j, rho_j and factorise (once per control step).
+
+        ``rho``: ``None`` for eq.opt_ro per objective, a scalar, or (n_obj,).
+        """
+        T = self.topology
+        H, E = local_costs(T, data)
+        Ains, bins = [], []
+        for j in range(T.n_objectives):
+            rows = self._rows(j)
+            cols = np.asarray(T.group_columns(j))
+            Ains.append(data.Ain[np.ix_(rows, cols)])
+            bins.append(data.bin[:, rows])
+        if rho is None:
+            rhos = []
+            for j in range(T.n_objectives):
+                full = T.group_rank[j] == len(T.group_columns(j))
+                r = None if full else T.group_rank[j]
+                rhos.append(optimal_rho(H[j], Ains[j], T.horizon, r))
+            rho_arr = jnp.stack(rhos)
+        else:
+            rho_arr = jnp.broadcast_to(jnp.asarray(rho, H[0].dtype), (T.n_objectives,))
+        chol = []
+        for j in range(T.n_objectives):
+            AtA = Ains[j].T @ Ains[j]
+            K = H[j] + rho_arr[j] * jnp.kron(jnp.eye(T.horizon, dtype=AtA.dtype), AtA)
+            chol.append(jnp.linalg.cholesky(K))
+        den = jnp.zeros((T.n_c,), H[0].dtype)
+        for j in range(T.n_objectives):
+            den = den.at[self._rows(j)].add(rho_arr[j])
+        return LocalSetup(
+            H=tuple(H),
+            E=tuple(E),
+            Ain=tuple(Ains),
+            bin=tuple(bins),
+            rho=rho_arr,
+            chol=tuple(chol),
+            den=den,
+            lb=data.lb,
+            ub=data.ub,
+        )
+
+    def init(self, setup: LocalSetup, warm: ADMMState | None = None) -> ADMMState:
+        """Cold start (zeros, as alg:1) or a warm start state (see :func:`shift_state`)."""
+        if warm is not None:
+            return warm
+        T = self.topology
+        dt = setup.rho.dtype
+        inf = jnp.full((T.n_objectives,), jnp.inf, dt)
+        return ADMMState(
+            U=tuple(jnp.zeros((T.horizon, a.shape[1]), dt) for a in setup.Ain),
+            Z=jnp.zeros((T.horizon, T.n_c), dt),
+            gamma=tuple(jnp.zeros((T.horizon, a.shape[0]), dt) for a in setup.Ain),
+            iteration=jnp.zeros((), jnp.int32),
+            primal=inf,
+            dual=inf,
+        )
+
+    # -- one iteration --------------------------------------------------------------
+    def step(self, setup: LocalSetup, state: ADMMState) -> ADMMState:
+        """One ADMM iteration: local, global and dual updates (alg:1 steps 5-9)."""
+        T = self.topology
+        N = T.horizon
+        num = jnp.zeros_like(state.Z)
+        U_new, AU = [], []
+        for j in range(T.n_objectives):
+            rows = self._rows(j)
+            rho = setup.rho[j]
+            Zj = state.Z[:, rows]
+            rhs = setup.E[j] + (
+                (rho * (Zj - setup.bin[j]) + state.gamma[j]) @ setup.Ain[j]
+            ).reshape(-1)
+            U = -jsl.cho_solve((setup.chol[j], True), rhs).reshape(N, -1)
+            AUj = U @ setup.Ain[j].T
+            v = -AUj - state.gamma[j] / rho + setup.bin[j]
+            num = num.at[:, rows].add(rho * v)
+            U_new.append(U)
+            AU.append(AUj)
+        Z = jnp.maximum(num / setup.den, 0.0)
+        gam, pr, du = [], [], []
+        for j in range(T.n_objectives):
+            rows = self._rows(j)
+            rho = setup.rho[j]
+            r = AU[j] - setup.bin[j] + Z[:, rows]
+            s = rho * (Z[:, rows] - state.Z[:, rows])
+            gam.append(state.gamma[j] + rho * r)
+            pr.append(jnp.sum(r * r))
+            du.append(jnp.sum(s * s))
+        return ADMMState(
+            U=tuple(U_new),
+            Z=Z,
+            gamma=tuple(gam),
+            iteration=state.iteration + 1,
+            primal=jnp.stack(pr),
+            dual=jnp.stack(du),
+        )
+
+    def converged(self, state: ADMMState) -> Any:
+        """eq.Convergence for every objective."""
+        return jnp.all((state.primal <= self.tol_primal) & (state.dual <= self.tol_dual))
+
+    # -- runners ---------------------------------------------------------------------
+    def run(self, setup: LocalSetup, state: ADMMState) -> ADMMState:
+        """``lax.while_loop`` until eq.Convergence or ``max_iter`` (deployment)."""
+
+        def cond(st: ADMMState) -> Any:
+            finite = jnp.all(jnp.isfinite(st.primal) | (st.iteration == 0))
+            return (st.iteration < self.max_iter) & ~self.converged(st) & finite
+
+        return jax.lax.while_loop(cond, lambda st: self.step(setup, st), state)
+
+    def run_fixed(self, setup: LocalSetup, state: ADMMState, iterations: int) -> ADMMState:
+        """Exactly ``iterations`` iterations under ``lax.scan`` (differentiable)."""
+
+        def body(st: ADMMState, _: Any) -> tuple[ADMMState, None]:
+            return self.step(setup, st), None
+
+        state, _ = jax.lax.scan(body, state, None, length=iterations)
+        return state
+
+    def result(self, setup: LocalSetup, state: ADMMState) -> SolveResult:
+        """Consensus inputs (average of the copies, projected on the bounds) and status."""
+        T = self.topology
+        total = jnp.zeros((T.horizon, T.n_u), setup.rho.dtype)
+        count = np.zeros(T.n_u)
+        for j in range(T.n_objectives):
+            cols = np.asarray(T.group_columns(j))
+            total = total.at[:, cols].add(state.U[j])
+            count[cols] += 1
+        u = jnp.clip(total / jnp.asarray(count, total.dtype), setup.lb, setup.ub)
+        conv = self.converged(state)
+        finite = jnp.all(jnp.isfinite(u)) & jnp.all(jnp.isfinite(state.primal))
+        status = jnp.where(~finite, 2, jnp.where(conv, 0, 1)).astype(jnp.int32)
+        return SolveResult(
+            u=u,
+            iterations=state.iteration,
+            converged=conv & finite,
+            status=status,
+            primal_residual=state.primal,
+            dual_residual=state.dual,
+            rho=setup.rho,
+            state=state,
+        )
+
+    def solve(
+        self, data: ProblemData, rho: Any = None, warm: ADMMState | None = None
+    ) -> SolveResult:
+        """Full control step: setup, factorise, rho, iterate to tolerance."""
+        setup = self.setup(data, rho)
+        return self.result(setup, self.run(setup, self.init(setup, warm)))
+
+    def solve_fixed(
+        self,
+        data: ProblemData,
+        iterations: int,
+        rho: Any = None,
+        warm: ADMMState | None = None,
+    ) -> SolveResult:
+        """Full control step with a fixed iteration count (for ``jax.grad``)."""
+        setup = self.setup(data, rho)
+        return self.result(setup, self.run_fixed(setup, self.init(setup, warm), iterations))

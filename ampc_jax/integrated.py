@@ -1,0 +1,268 @@
+"""The integrated (centralised) MPC, eq.integMPC with eq_linear: the reference optimum.
+
+Condensed over the horizon the integrated MPC is the QP::
+
+    min_U  1/2 U' H U + E' U      s.t.  Abar U <= bbar,
+    H = 2 (sum_j Y_u,j' Qbar_j Y_u,j + Rbar),
+    E = 2 sum_j Y_u,j' Qbar_j (Y_x,j X^(0) + Y_w,j Wbar - Xbar_ref,j),
+
+with U = [U^(0); ...; U^(N_p-1)] over all agents, Abar = I (x) A_in.
+
+Two solvers return the same :class:`~ampc_jax.results.SolveResult` as the
+formulations:
+
+* :func:`solve_reference` -- an established interior-point (Clarabel) or ADMM
+  (OSQP) solver, for tests and as the reference optimum;
+* :class:`IntegratedADMM` -- JAX-native: the same explicit ADMM machinery as
+  Local Explicit applied to the undecomposed problem, i.e. one objective that
+  stacks every C_j, Q_j and reference and owns all agents. Time ratios
+  (eq.t_ratio) compare like with like on the same stack.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+import scipy.sparse as sp
+
+from .formulations import LocalExplicit, local_costs
+from .results import SolveResult
+from .topology import ProblemData, Topology
+
+__all__ = [
+    "CondensedQP",
+    "IntegratedADMM",
+    "OSQPReference",
+    "condensed_qp",
+    "merged_data",
+    "merged_topology",
+    "solve_reference",
+]
+
+
+class CondensedQP(NamedTuple):
+    """H (n, n), E (n,), G (m, n), h (m,) of ``min 1/2 U'HU + E'U s.t. G U <= h``."""
+
+    H: Any
+    E: Any
+    G: Any
+    h: Any
+
+
+def merged_topology(topology: Topology) -> Topology:
+    """The undecomposed problem as a one-objective topology (all agents, all outputs)."""
+    return Topology(
+        n_x=topology.n_x,
+        horizon=topology.horizon,
+        agent_names=topology.agent_names,
+        agent_sizes=topology.agent_sizes,
+        objective_names=("integrated",),
+        output_sizes=(sum(topology.output_sizes),),
+        groups=(tuple(range(topology.n_agents)),),
+        box_rows=topology.box_rows,
+        general_agents=topology.general_agents,
+        covered_inputs=topology.covered_inputs,
+        pinned_rank=topology.pinned_rank,
+        group_rank=(_merged_rank(topology),),
+    )
+
+
+def _merged_rank(topology: Topology) -> int:
+    # The merged rows are all rows; with every input boxed the rank is n_u.
+    if all(r == s for r, s in zip(topology.pinned_rank, topology.agent_sizes, strict=True)):
+        return topology.n_u
+    return min(topology.n_u, max(topology.group_rank) if topology.group_rank else 0)
+
+
+def merged_data(data: ProblemData) -> ProblemData:
+    """Stack the objectives' C_j, block-diagonal Q_j and references into one objective."""
+    Qs = data.Q
+    n = sum(q.shape[0] for q in Qs)
+    Q = jnp.zeros((n, n), Qs[0].dtype)
+    o = 0
+    for q in Qs:
+        Q = Q.at[o : o + q.shape[0], o : o + q.shape[0]].set(q)
+        o += q.shape[0]
+    return data._replace(
+        C=(jnp.concatenate(data.C, axis=0),),
+        Q=(Q,),
+        ref=(jnp.concatenate(data.ref, axis=1),),
+    )
+
+
+def condensed_qp(topology: Topology, data: ProblemData) -> CondensedQP:
+    """The integrated MPC as a condensed QP (jittable)."""
+    mt = merged_topology(topology)
+    H, E = local_costs(mt, merged_data(data))
+    G = jnp.kron(jnp.eye(topology.horizon, dtype=data.Ain.dtype), data.Ain)
+    return CondensedQP(H=H[0], E=E[0], G=G, h=data.bin.reshape(-1))
+
+
+@dataclass(frozen=True)
+class IntegratedADMM:
+    """JAX-native integrated MPC: explicit ADMM on the undecomposed problem.
+
+    Same settings and runners as :class:`~ampc_jax.formulations.LocalExplicit`;
+    rho from eq.opt_ro on the whole problem by default.
+    """
+
+    topology: Topology
+    max_iter: int = 2000
+    tol_primal: float = 1e-6
+    tol_dual: float = 1e-6
+
+    @property
+    def inner(self) -> LocalExplicit:
+        return LocalExplicit(
+            merged_topology(self.topology), self.max_iter, self.tol_primal, self.tol_dual
+        )
+
+    def solve(self, data: ProblemData, rho: Any = None, warm: Any = None) -> SolveResult:
+        return self.inner.solve(merged_data(data), rho, warm)
+
+    def solve_fixed(
+        self, data: ProblemData, iterations: int, rho: Any = None, warm: Any = None
+    ) -> SolveResult:
+        return self.inner.solve_fixed(merged_data(data), iterations, rho, warm)
+
+
+def _numpy_qp(topology: Topology, data: ProblemData) -> CondensedQP:
+    qp = condensed_qp(topology, data)
+    return CondensedQP(*(np.asarray(x, dtype=float) for x in qp))
+
+
+def solve_reference(
+    topology: Topology,
+    data: ProblemData,
+    solver: str = "clarabel",
+    *,
+    eps: float = 1e-9,
+) -> SolveResult:
+    """Solve the integrated QP with Clarabel (default) or OSQP; numpy in, numpy out.
+
+    ``eps`` sets the solver's tolerances. The returned ``u`` is (N_p, n_u);
+    residual fields hold the solver's primal and dual residuals when it reports
+    them (as 1-element arrays). ``state`` holds the solve time in seconds.
+    """
+    qp = _numpy_qp(topology, data)
+    n = qp.H.shape[0]
+    t0 = time.perf_counter()
+    if solver == "clarabel":
+        import clarabel
+
+        P = sp.triu(sp.csc_matrix(qp.H), format="csc")
+        A = sp.csc_matrix(qp.G)
+        settings = clarabel.DefaultSettings()
+        settings.verbose = False
+        settings.tol_gap_abs = eps
+        settings.tol_gap_rel = eps
+        settings.tol_feas = eps
+        settings.tol_ktratio = min(1e-6, eps)
+        cones = [clarabel.NonnegativeConeT(A.shape[0])] if A.shape[0] else []
+        s = clarabel.DefaultSolver(P, qp.E, A, qp.h, cones, settings)
+        sol = s.solve()
+        elapsed = time.perf_counter() - t0
+        name = str(sol.status)
+        status = (
+            0
+            if name.endswith("Solved") and "Almost" not in name
+            else (3 if "Infeasible" in name else 4)
+        )
+        if "AlmostSolved" in name:
+            status = 0
+        u = np.asarray(sol.x, dtype=float)
+        iters = int(sol.iterations)
+        pres = float(getattr(sol, "r_prim", np.nan))
+        dres = float(getattr(sol, "r_dual", np.nan))
+    elif solver == "osqp":
+        ref = OSQPReference(topology, data, eps=eps)
+        t0 = time.perf_counter()
+        res = ref.solve()
+        elapsed = time.perf_counter() - t0
+        return res._replace(state=elapsed)
+    else:
+        raise ValueError(f"solver: expected 'clarabel' or 'osqp', got {solver!r}")
+    return SolveResult(
+        u=u.reshape(topology.horizon, topology.n_u)
+        if u.size == n
+        else np.full((topology.horizon, topology.n_u), np.nan),
+        iterations=iters,
+        converged=status == 0,
+        status=status,
+        primal_residual=np.array([pres]),
+        dual_residual=np.array([dres]),
+        rho=np.array([np.nan]),
+        state=elapsed,
+    )
+
+
+class OSQPReference:
+    """OSQP on the integrated QP with the ``setup`` / ``update`` / ``solve`` story.
+
+    ``update(data)`` changes q, P (same sparsity: dense upper triangle) and the
+    bounds for a new control step and keeps the previous solution as warm start.
+    """
+
+    def __init__(self, topology: Topology, data: ProblemData, *, eps: float = 1e-6) -> None:
+        import osqp
+
+        self.topology = topology
+        qp = _numpy_qp(topology, data)
+        n = qp.H.shape[0]
+        rows, cols = np.triu_indices(n)
+        # Dense upper triangle with explicit zeros kept, so updates never change sparsity.
+        P = sp.coo_matrix((qp.H[rows, cols], (rows, cols)), shape=(n, n)).tocsc()
+        self._P_pattern = P
+        self.solver = osqp.OSQP()
+        self.solver.setup(
+            P=P,
+            q=qp.E,
+            A=sp.csc_matrix(qp.G),
+            l=np.full(qp.h.shape, -np.inf),
+            u=qp.h,
+            eps_abs=eps,
+            eps_rel=eps,
+            max_iter=100000,
+            polishing=True,
+            verbose=False,
+        )
+
+    def _p_values(self, H: np.ndarray) -> np.ndarray:
+        P = self._P_pattern
+        # CSC data order: column-major over the upper triangle
+        rows, cols = P.indices, np.repeat(np.arange(P.shape[1]), np.diff(P.indptr))
+        return H[rows, cols]
+
+    def update(self, data: ProblemData) -> None:
+        qp = _numpy_qp(self.topology, data)
+        self.solver.update(q=qp.E, u=qp.h, Px=self._p_values(qp.H))
+
+    def update_qp(self, qp: CondensedQP) -> None:
+        """Update from an already condensed QP (numpy), skipping the condensing."""
+        self.solver.update(q=qp.E, u=qp.h, Px=self._p_values(qp.H))
+
+    def solve(self) -> SolveResult:
+        res = self.solver.solve()
+        info = res.info
+        val = str(info.status).lower()
+        status = 0 if val.startswith("solved") else (3 if "infeasible" in val else 4)
+        T = self.topology
+        x = (
+            np.asarray(res.x, dtype=float)
+            if res.x is not None
+            else np.full(T.horizon * T.n_u, np.nan)
+        )
+        return SolveResult(
+            u=x.reshape(T.horizon, T.n_u),
+            iterations=int(info.iter),
+            converged=status == 0,
+            status=status,
+            primal_residual=np.array([float(info.prim_res)]),
+            dual_residual=np.array([float(info.dual_res)]),
+            rho=np.array([float(info.rho_estimate)]),
+            state=None,
+        )

@@ -1,0 +1,412 @@
+//! The messages of the shipped DBC (`python/can_bridge/can_bridge.dbc`) as
+//! static tables, with little-endian (Intel) signal packing that agrees with
+//! cantools: raw = round_half_even((value - offset) / factor).
+
+use crate::e2e;
+use crate::error::{Error, Result};
+use crate::frame::CanFrame;
+
+/// One signal: little-endian, `len` bits from bit `start` (DBC numbering).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Signal {
+    /// Name as in the DBC.
+    pub name: &'static str,
+    /// Start bit (least significant bit, DBC little-endian numbering).
+    pub start: u32,
+    /// Length in bits (1..=32).
+    pub len: u32,
+    /// Two's complement when true.
+    pub signed: bool,
+    /// Physical = raw * factor + offset.
+    pub factor: f64,
+    /// Physical offset.
+    pub offset: f64,
+    /// Physical minimum from the DBC.
+    pub min: f64,
+    /// Physical maximum from the DBC.
+    pub max: f64,
+}
+
+const fn sig(
+    name: &'static str,
+    start: u32,
+    len: u32,
+    signed: bool,
+    factor: f64,
+    min: f64,
+    max: f64,
+) -> Signal {
+    Signal {
+        name,
+        start,
+        len,
+        signed,
+        factor,
+        offset: 0.0,
+        min,
+        max,
+    }
+}
+
+impl Signal {
+    /// Smallest raw value the bit field holds.
+    pub fn raw_min(&self) -> i64 {
+        if self.signed {
+            -(1i64 << (self.len - 1))
+        } else {
+            0
+        }
+    }
+
+    /// Largest raw value the bit field holds.
+    pub fn raw_max(&self) -> i64 {
+        if self.signed {
+            (1i64 << (self.len - 1)) - 1
+        } else {
+            (1i64 << self.len) - 1
+        }
+    }
+
+    /// Physical to raw, as cantools does; fails on non-finite values and on
+    /// values outside the field.
+    pub fn to_raw(&self, value: f64) -> Result<i64> {
+        if !value.is_finite() {
+            return Err(Error::Command(format!(
+                "{} = {value} is not a finite number",
+                self.name
+            )));
+        }
+        let raw = ((value - self.offset) / self.factor).round_ties_even();
+        if raw < self.raw_min() as f64 || raw > self.raw_max() as f64 {
+            return Err(Error::Command(format!(
+                "{} = {value} does not fit the {}-bit field",
+                self.name, self.len
+            )));
+        }
+        Ok(raw as i64)
+    }
+
+    /// Raw to physical.
+    pub fn to_phys(&self, raw: i64) -> f64 {
+        raw as f64 * self.factor + self.offset
+    }
+
+    /// Write `raw` (truncated to the field width) into `data`.
+    pub fn put_raw(&self, data: &mut [u8; 8], raw: i64) {
+        let mask: u64 = (1u64 << self.len) - 1;
+        let mut word = u64::from_le_bytes(*data);
+        word &= !(mask << self.start);
+        word |= ((raw as u64) & mask) << self.start;
+        *data = word.to_le_bytes();
+    }
+
+    /// Read the raw value (sign-extended) from `data` (missing bytes read as 0).
+    pub fn get_raw(&self, data: &[u8]) -> i64 {
+        let mut buf = [0u8; 8];
+        let n = data.len().min(8);
+        buf[..n].copy_from_slice(&data[..n]);
+        let word = u64::from_le_bytes(buf);
+        let mask: u64 = (1u64 << self.len) - 1;
+        let v = (word >> self.start) & mask;
+        if self.signed && (v >> (self.len - 1)) & 1 == 1 {
+            (v | !mask) as i64
+        } else {
+            v as i64
+        }
+    }
+
+    /// Physical value read from `data`.
+    pub fn get(&self, data: &[u8]) -> f64 {
+        self.to_phys(self.get_raw(data))
+    }
+}
+
+/// One message of the DBC.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Message {
+    /// Name as in the DBC.
+    pub name: &'static str,
+    /// 11-bit CAN identifier.
+    pub id: u32,
+    /// Payload length in bytes.
+    pub len: usize,
+    /// E2E Data ID (DBC attribute `E2EDataID`).
+    pub data_id: u16,
+    /// Signals in DBC order.
+    pub signals: &'static [Signal],
+}
+
+const CRC: Signal = sig("CRC", 0, 8, false, 1.0, 0.0, 255.0);
+const COUNTER: Signal = sig("Counter", 8, 4, false, 1.0, 0.0, 14.0);
+
+/// `WheelTorqueCmd`, sent by the bridge every tick.
+pub const WHEEL_TORQUE_CMD: Message = Message {
+    name: "WheelTorqueCmd",
+    id: 0x101,
+    len: 8,
+    data_id: 3073,
+    signals: &[
+        CRC,
+        COUNTER,
+        sig("Mode", 12, 2, false, 1.0, 0.0, 3.0),
+        sig("TorqueFL", 16, 12, true, 0.5, -1000.0, 1000.0),
+        sig("TorqueFR", 28, 12, true, 0.5, -1000.0, 1000.0),
+        sig("TorqueRL", 40, 12, true, 0.5, -1000.0, 1000.0),
+        sig("TorqueRR", 52, 12, true, 0.5, -1000.0, 1000.0),
+    ],
+};
+
+/// `VehicleMotion`: longitudinal and lateral speed (m/s), yaw rate (rad/s).
+pub const VEHICLE_MOTION: Message = Message {
+    name: "VehicleMotion",
+    id: 0x201,
+    len: 8,
+    data_id: 3089,
+    signals: &[
+        CRC,
+        COUNTER,
+        sig("LongSpeed", 16, 16, true, 0.01, -327.68, 327.67),
+        sig("LatSpeed", 32, 16, true, 0.01, -327.68, 327.67),
+        sig("YawRate", 48, 16, true, 0.001, -32.768, 32.767),
+    ],
+};
+
+/// `WheelSpeeds`: the four wheel angular speeds (rad/s).
+pub const WHEEL_SPEEDS: Message = Message {
+    name: "WheelSpeeds",
+    id: 0x202,
+    len: 8,
+    data_id: 3090,
+    signals: &[
+        CRC,
+        COUNTER,
+        sig("WheelSpeedFL", 16, 12, true, 0.1, -204.8, 204.7),
+        sig("WheelSpeedFR", 28, 12, true, 0.1, -204.8, 204.7),
+        sig("WheelSpeedRL", 40, 12, true, 0.1, -204.8, 204.7),
+        sig("WheelSpeedRR", 52, 12, true, 0.1, -204.8, 204.7),
+    ],
+};
+
+/// `SteeringState`: front road-wheel steering angle (rad).
+pub const STEERING_STATE: Message = Message {
+    name: "SteeringState",
+    id: 0x203,
+    len: 4,
+    data_id: 3091,
+    signals: &[
+        CRC,
+        COUNTER,
+        sig("SteeringAngle", 16, 16, true, 0.0001, -3.2768, 3.2767),
+    ],
+};
+
+/// Every message of the DBC.
+pub const ALL_MESSAGES: [&Message; 4] = [
+    &WHEEL_TORQUE_CMD,
+    &VEHICLE_MOTION,
+    &WHEEL_SPEEDS,
+    &STEERING_STATE,
+];
+
+/// The received messages, in the order of [`crate::bridge::RxSlot`].
+pub const RX_MESSAGES: [&Message; 3] = [&VEHICLE_MOTION, &WHEEL_SPEEDS, &STEERING_STATE];
+
+/// Safety state carried in `WheelTorqueCmd.Mode`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[repr(u8)]
+pub enum Mode {
+    /// Following fresh commands.
+    Active = 0,
+    /// Command late: last output held.
+    Hold = 1,
+    /// Command missing: zero torque.
+    Safe = 2,
+    /// Latched after a long silence: zero torque until `reset_fault`.
+    Fault = 3,
+}
+
+impl Mode {
+    /// The DBC value name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Mode::Active => "active",
+            Mode::Hold => "hold",
+            Mode::Safe => "safe",
+            Mode::Fault => "fault",
+        }
+    }
+}
+
+impl Message {
+    /// The signal called `name`.
+    pub fn signal(&self, name: &str) -> Option<&Signal> {
+        self.signals.iter().find(|s| s.name == name)
+    }
+
+    /// Pack physical values (one per non-E2E signal, in DBC order after CRC and
+    /// Counter) and protect with `counter`.
+    pub fn encode(&self, values: &[f64], counter: u8) -> Result<CanFrame> {
+        let payload_signals = self.signals.get(2..).unwrap_or(&[]);
+        if values.len() != payload_signals.len() {
+            return Err(Error::Command(format!(
+                "{} takes {} values, got {}",
+                self.name,
+                payload_signals.len(),
+                values.len()
+            )));
+        }
+        let mut data = [0u8; 8];
+        for (s, &v) in payload_signals.iter().zip(values) {
+            s.put_raw(&mut data, s.to_raw(v)?);
+        }
+        e2e::protect(&mut data[..self.len], self.data_id, counter);
+        CanFrame::new(self.id, false, &data[..self.len])
+    }
+
+    /// Physical values of the non-E2E signals (no E2E check here).
+    pub fn decode_values(&self, data: &[u8], out: &mut [f64]) {
+        let payload_signals = self.signals.get(2..).unwrap_or(&[]);
+        for (s, o) in payload_signals.iter().zip(out.iter_mut()) {
+            *o = s.get(data);
+        }
+    }
+}
+
+/// Frame `WheelTorqueCmd`. `torques_nm` must already be clamped to the
+/// actuator limits; they are rounded to the 0.5 Nm resolution.
+pub fn encode_torque_cmd(torques_nm: &[f64; 4], mode: Mode, counter: u8) -> Result<CanFrame> {
+    let v = [
+        f64::from(mode as u8),
+        torques_nm[0],
+        torques_nm[1],
+        torques_nm[2],
+        torques_nm[3],
+    ];
+    WHEEL_TORQUE_CMD.encode(&v, counter)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const DBC: &str = include_str!("../python/can_bridge/can_bridge.dbc");
+
+    /// Parse `BO_`, `SG_` and `BA_ "E2EDataID"` lines of the shipped DBC and
+    /// check the static tables against them, so the two cannot drift apart.
+    #[test]
+    fn tables_match_shipped_dbc() {
+        let mut current: Option<&Message> = None;
+        let mut seen_signals = 0;
+        let mut seen_ids = 0;
+        for line in DBC.lines() {
+            let t = line.trim();
+            if let Some(rest) = t.strip_prefix("BO_ ") {
+                let mut it = rest.split_whitespace();
+                let id: u32 = it.next().unwrap().parse().unwrap();
+                let name = it.next().unwrap().trim_end_matches(':');
+                let len: usize = it.next().unwrap().parse().unwrap();
+                let m = ALL_MESSAGES.iter().find(|m| m.id == id).unwrap();
+                assert_eq!(m.name, name);
+                assert_eq!(m.len, len);
+                current = Some(m);
+            } else if let Some(rest) = t.strip_prefix("SG_ ") {
+                let m = current.unwrap();
+                let (name, rest) = rest.split_once(" : ").unwrap();
+                let s = m.signal(name.trim()).unwrap();
+                let (layout, rest) = rest.split_once(' ').unwrap();
+                let (start, rest2) = layout.split_once('|').unwrap();
+                let (len, fmt) = rest2.split_once('@').unwrap();
+                assert_eq!(s.start, start.parse::<u32>().unwrap(), "{name}");
+                assert_eq!(s.len, len.parse::<u32>().unwrap(), "{name}");
+                assert_eq!(&fmt[..1], "1", "{name} must be little-endian");
+                assert_eq!(s.signed, &fmt[1..] == "-", "{name}");
+                let fo = rest.trim().strip_prefix('(').unwrap();
+                let (fo, rest) = fo.split_once(')').unwrap();
+                let (f, o) = fo.split_once(',').unwrap();
+                assert_eq!(s.factor, f.parse::<f64>().unwrap(), "{name}");
+                assert_eq!(s.offset, o.parse::<f64>().unwrap(), "{name}");
+                let mm = rest.trim().strip_prefix('[').unwrap();
+                let (mm, _) = mm.split_once(']').unwrap();
+                let (lo, hi) = mm.split_once('|').unwrap();
+                assert_eq!(s.min, lo.parse::<f64>().unwrap(), "{name}");
+                assert_eq!(s.max, hi.parse::<f64>().unwrap(), "{name}");
+                seen_signals += 1;
+            } else if let Some(rest) = t.strip_prefix("BA_ \"E2EDataID\" BO_ ") {
+                let mut it = rest.trim_end_matches(';').split_whitespace();
+                let id: u32 = it.next().unwrap().parse().unwrap();
+                let did: u16 = it.next().unwrap().parse().unwrap();
+                let m = ALL_MESSAGES.iter().find(|m| m.id == id).unwrap();
+                assert_eq!(m.data_id, did, "{}", m.name);
+                seen_ids += 1;
+            }
+        }
+        let total: usize = ALL_MESSAGES.iter().map(|m| m.signals.len()).sum();
+        assert_eq!(seen_signals, total);
+        assert_eq!(seen_ids, ALL_MESSAGES.len());
+    }
+
+    /// Bytes produced by cantools 45.1 (`db.encode_message`) for the same
+    /// values, with CRC/Counter then filled in by `autosar-e2e`.
+    #[test]
+    fn packing_matches_cantools_example() {
+        // cantools: WheelTorqueCmd {CRC:0, Counter:3, Mode:hold, FL:-12.5,
+        // FR:100, RL:0, RR:1000} -> 00 13 e7 8f 0c 00 00 7d (CRC not yet set).
+        let mut data = [0u8; 8];
+        let m = &WHEEL_TORQUE_CMD;
+        for (name, v) in [
+            ("Counter", 3.0),
+            ("Mode", 1.0),
+            ("TorqueFL", -12.5),
+            ("TorqueFR", 100.0),
+            ("TorqueRL", 0.0),
+            ("TorqueRR", 1000.0),
+        ] {
+            let s = m.signal(name).unwrap();
+            s.put_raw(&mut data, s.to_raw(v).unwrap());
+        }
+        assert_eq!(data, [0x00, 0x13, 0xe7, 0x8f, 0x0c, 0x00, 0x00, 0x7d]);
+        let f = encode_torque_cmd(&[-12.5, 100.0, 0.0, 1000.0], Mode::Hold, 3).unwrap();
+        assert_eq!(&f.data()[1..], &data[1..]);
+        assert!(e2e::crc_ok(f.data(), m.data_id));
+    }
+
+    #[test]
+    fn round_half_even_like_python() {
+        let s = WHEEL_TORQUE_CMD.signal("TorqueFL").unwrap();
+        // 0.25 / 0.5 = 0.5 -> 0 ; 0.75 / 0.5 = 1.5 -> 2 ; -0.25 -> -0.0 -> 0
+        assert_eq!(s.to_raw(0.25).unwrap(), 0);
+        assert_eq!(s.to_raw(0.75).unwrap(), 2);
+        assert_eq!(s.to_raw(-0.25).unwrap(), 0);
+        assert_eq!(s.to_raw(-0.75).unwrap(), -2);
+        assert!(s.to_raw(f64::NAN).is_err());
+        assert!(s.to_raw(f64::INFINITY).is_err());
+        assert!(s.to_raw(1024.0).is_err());
+        assert_eq!(s.to_raw(1023.5).unwrap(), 2047);
+    }
+
+    #[test]
+    fn signed_roundtrip_all_raw_values() {
+        for m in ALL_MESSAGES {
+            for s in m.signals {
+                for raw in [s.raw_min(), -1, 0, 1, s.raw_max()] {
+                    if raw < s.raw_min() {
+                        continue;
+                    }
+                    let mut d = [0xA5u8; 8];
+                    s.put_raw(&mut d, raw);
+                    assert_eq!(s.get_raw(&d), raw, "{}", s.name);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn wrong_value_count_is_an_error() {
+        assert!(VEHICLE_MOTION.encode(&[1.0], 0).is_err());
+        let f = STEERING_STATE.encode(&[0.5], 4).unwrap();
+        assert_eq!(f.len(), 4);
+        let mut out = [0.0];
+        STEERING_STATE.decode_values(f.data(), &mut out);
+        assert!((out[0] - 0.5).abs() < 1e-12);
+    }
+}

@@ -1,0 +1,127 @@
+"""Independent peers for the can_bridge tests: cantools decodes and encodes
+from the shipped DBC, the ``autosar-e2e`` package checks and computes every
+CRC, python-can plays the SLCAN host. Nothing here uses the Rust codec."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from collections.abc import Iterator
+from functools import lru_cache
+
+import can
+import cantools
+import e2e.p01
+
+import can_bridge
+
+MODES = {0: "active", 1: "hold", 2: "safe", 3: "fault"}
+
+
+@lru_cache(maxsize=1)
+def db() -> cantools.database.can.Database:
+    return cantools.database.load_file(can_bridge.dbc_path())
+
+
+def data_id(name: str) -> int:
+    return int(db().get_message_by_name(name).dbc.attributes["E2EDataID"].value)
+
+
+def protect(name: str, values: dict[str, float], counter: int) -> bytes:
+    """cantools encode + autosar-e2e CRC: the peer's own framing."""
+    msg = db().get_message_by_name(name)
+    # strict=False only to let a test build the invalid counter 15.
+    data = bytearray(msg.encode({"CRC": 0, "Counter": counter, **values}, strict=counter <= 14))
+    e2e.p01.e2e_p01_protect(data, data_id(name), increment_counter=False)
+    return bytes(data)
+
+
+class CmdChecker:
+    """Checks WheelTorqueCmd frames one by one: ID, DLC, CRC (autosar-e2e),
+    counter continuity, and that cantools re-encodes the decoded values to the
+    same bytes."""
+
+    def __init__(self) -> None:
+        self.msg = db().get_message_by_name("WheelTorqueCmd")
+        self.did = data_id("WheelTorqueCmd")
+        self.prev: int | None = None
+        self.frames: list[dict] = []
+        self.raw: list[bytes] = []
+
+    def add(self, arbitration_id: int, is_extended: bool, data: bytes) -> dict:
+        assert arbitration_id == self.msg.frame_id and not is_extended
+        assert len(data) == 8
+        buf = bytearray(data)
+        assert e2e.p01.e2e_p01_check(buf, self.did), f"bad CRC in {data.hex()}"
+        counter = data[1] & 0x0F
+        assert counter <= 14
+        if self.prev is not None:
+            assert counter == (self.prev + 1) % 15, f"counter {self.prev} -> {counter}"
+        self.prev = counter
+        values = self.msg.decode(bytes(data), decode_choices=False)
+        again = bytearray(self.msg.encode(values))
+        e2e.p01.e2e_p01_protect(again, self.did, increment_counter=False)
+        assert bytes(again) == bytes(data)
+        out = {
+            "mode": MODES[int(values["Mode"])],
+            "torques": tuple(values[k] for k in ("TorqueFL", "TorqueFR", "TorqueRL", "TorqueRR")),
+            "counter": counter,
+        }
+        assert all(math.isfinite(t) for t in out["torques"])
+        self.frames.append(out)
+        self.raw.append(bytes(data))
+        return out
+
+
+def recv_cmds(bus: can.BusABC, checker: CmdChecker, n: int, timeout: float = 10.0) -> list[dict]:
+    got = []
+    end = time.monotonic() + timeout
+    while len(got) < n and time.monotonic() < end:
+        m = bus.recv(timeout=0.2)
+        if m is not None:
+            got.append(checker.add(m.arbitration_id, m.is_extended_id, bytes(m.data)))
+    assert len(got) == n, f"received {len(got)} of {n} frames"
+    return got
+
+
+def recv_until(bus: can.BusABC, checker: CmdChecker, pred, timeout: float = 10.0) -> list[dict]:
+    got = []
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        m = bus.recv(timeout=0.2)
+        if m is None:
+            continue
+        got.append(checker.add(m.arbitration_id, m.is_extended_id, bytes(m.data)))
+        if pred(got[-1]):
+            return got
+    raise AssertionError(f"condition not met within {timeout} s; last frames {got[-5:]}")
+
+
+@contextlib.contextmanager
+def slcan_peer(bridge: can_bridge.Bridge) -> Iterator[can.BusABC]:
+    """Start the bridge on a pty and open python-can's slcan interface on it."""
+    bridge.start()
+    assert bridge.pty_path is not None
+    bus = can.Bus(interface="slcan", channel=bridge.pty_path, sleep_after_open=0, bitrate=500000)
+    try:
+        yield bus
+    finally:
+        bus.shutdown()
+        bridge.stop()
+
+
+def state_message(
+    name: str, values: dict[str, float], counter: int, *, corrupt: bool = False
+) -> can.Message:
+    data = bytearray(protect(name, values, counter))
+    if corrupt:
+        data[2] ^= 0x01
+    return can.Message(
+        arbitration_id=db().get_message_by_name(name).frame_id, is_extended_id=False, data=data
+    )
+
+
+MOTION = {"LongSpeed": 12.34, "LatSpeed": -0.56, "YawRate": 0.123}
+WHEELS = {"WheelSpeedFL": 40.1, "WheelSpeedFR": 40.2, "WheelSpeedRL": 39.9, "WheelSpeedRR": -1.5}
+STEER = {"SteeringAngle": 0.0456}

@@ -1,0 +1,98 @@
+"""``slcan:PATH`` (host role, raw termios) against a pty standing in for a
+serial SLCAN adapter: the test reads and writes the adapter's side itself."""
+
+from __future__ import annotations
+
+import os
+import select
+import time
+
+import pytest
+from cb_peers import STEER, CmdChecker, protect
+
+import can_bridge
+
+pytestmark = pytest.mark.timeout(60)
+
+
+class LineReader:
+    """CR-terminated lines from the adapter side of the pty."""
+
+    def __init__(self, fd: int) -> None:
+        self.fd = fd
+        self.buf = b""
+
+    def lines(self, n: int, timeout: float = 5.0) -> list[bytes]:
+        end = time.monotonic() + timeout
+        while self.buf.count(b"\r") < n and time.monotonic() < end:
+            r, _, _ = select.select([self.fd], [], [], 0.05)
+            if r:
+                try:
+                    self.buf += os.read(self.fd, 4096)
+                except OSError:
+                    break
+        parts = self.buf.split(b"\r")
+        out, rest = parts[: min(n, len(parts) - 1)], parts[min(n, len(parts) - 1) :]
+        self.buf = b"\r".join(rest)
+        return out
+
+
+def _parse_slcan(line: bytes) -> tuple[int, bool, bytes]:
+    """The adapter side's own SLCAN parsing (no code shared with the bridge)."""
+    text = line.decode("ascii")
+    ext = text[0] == "T"
+    n = 8 if ext else 3
+    can_id = int(text[1 : 1 + n], 16)
+    dlc = int(text[1 + n])
+    data = bytes.fromhex(text[2 + n : 2 + n + 2 * dlc])
+    assert len(text) == 2 + n + 2 * dlc
+    return can_id, ext, data
+
+
+def test_serial_adapter_init_frames_and_receive() -> None:
+    master, slave = os.openpty()
+    path = os.ttyname(slave)
+    try:
+        bridge = can_bridge.Bridge(
+            f"slcan:{path}@115200", period_ms=20, bitrate=250000, max_rate_nm_per_tick=1000.0
+        )
+        bridge.start()
+        try:
+            reader = LineReader(master)
+            assert reader.lines(3) == [b"C", b"S5", b"O"]
+            bridge.set_command((7.5, 0.0, -7.5, 100.0), seq=1)
+            chk = CmdChecker()
+            for _ in range(50):
+                (line,) = reader.lines(1)
+                f = chk.add(*_parse_slcan(line))
+                if f["mode"] == "active":
+                    break
+            assert f["torques"] == (7.5, 0.0, -7.5, 100.0)
+            # The adapter reports a received frame (lower-case hex, with a Z1 timestamp).
+            data = protect("SteeringState", STEER, 0)
+            os.write(master, b"t2034" + data.hex().encode() + b"1A2B\r")
+            end = time.monotonic() + 2
+            while bridge.latest_state()["steering_angle_rad"] is None and time.monotonic() < end:
+                time.sleep(0.02)
+            assert bridge.latest_state()["steering_angle_rad"] == pytest.approx(0.0456)
+            # Garbage from the adapter is counted, never fatal.
+            os.write(master, b"\x00\xffnot slcan\rt12\r")
+            time.sleep(0.1)
+            assert bridge.stats()["rx_malformed"] >= 2
+        finally:
+            bridge.stop()
+        tail = reader.lines(500, timeout=0.5)
+        assert tail[-1] == b"C"  # closes the adapter's channel on stop
+        last = CmdChecker()
+        assert [last.add(*_parse_slcan(x))["mode"] for x in tail[-4:-1]] == ["safe"] * 3
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+def test_missing_serial_device_is_a_transport_error() -> None:
+    bridge = can_bridge.Bridge("slcan:/dev/does-not-exist-can@115200")
+    with pytest.raises(can_bridge.TransportError, match="does-not-exist-can") as info:
+        bridge.start()
+    assert isinstance(info.value, OSError)
+    assert not bridge.running

@@ -1,0 +1,197 @@
+"""Problem model: groups, derived quantities and every bad input's message."""
+
+import copy
+import json
+import math
+
+import numpy as np
+import pytest
+
+from ampc_jax.topology import Agent, Objective, Problem, ProblemError
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def base() -> dict:
+    return {
+        "horizon": 5,
+        "A": [[1.0, 0.1, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.9]],
+        "x0": [0.0, 0.0, 0.0],
+        "agents": [
+            {"name": "a", "B": [[0.0], [1.0], [0.0]], "R": [0.1], "lb": [-1], "ub": [1]},
+            {"name": "b", "B": [[0.0, 0.0], [0.5, 0.0], [0.0, 1.0]], "R": [0.1, 0.2],
+             "lb": [-1, -1], "ub": [1, 1]},
+            {"name": "c", "B": [[0.0], [0.0], [1.0]], "R": [[0.3]], "lb": [-2], "ub": [2]},
+        ],
+        "objectives": [
+            {"name": "pos", "C": [[1.0, 0.0, 0.0]], "Q": [1.0], "ref": [1.0]},
+            {"name": "z", "C": [[0.0, 0.0, 1.0]], "Q": [[2.0]], "ref": [0.5]},
+        ],
+    }
+
+
+def test_groups_derived_from_model():
+    p = Problem.from_dict(base())
+    T = p.topology
+    # pos = x1 sees a and b through A[0,1] (k >= 1); z = x3 sees b and c directly.
+    assert T.groups == ((0, 1), (1, 2))
+    assert T.multiplicity == (1, 2, 1)
+    assert T.contributions(1) == (0, 1)
+    assert T.n_u == 4 and T.n_c == 8
+    # box rows of shared agent b are carried by both objectives (m_(c) = 2)
+    mult = T.row_multiplicity
+    for c, (k, _) in enumerate(T.box_rows):
+        assert mult[c] == (2 if k in (1, 2) else 1)
+
+
+def test_group_needs_horizon_long_enough():
+    d = base()
+    d["horizon"] = 1  # A^0 only: pos = x1 is not reached by a or b in one step
+    with pytest.raises(ProblemError, match=r"objectives\[0\] \(pos\): no agent influences"):
+        Problem.from_dict(d)
+
+
+def test_explicit_group_and_warning_for_ignored_influence():
+    d = base()
+    d["objectives"][0]["agents"] = ["a"]
+    with pytest.warns(UserWarning, match=r"agents \['b'\] influence C_j X"):
+        p = Problem.from_dict(d)
+    assert p.topology.groups[0] == (0,)
+
+
+def test_python_and_file_agree(tmp_path):
+    d = base()
+    f = tmp_path / "p.json"
+    f.write_text(json.dumps(d))
+    p1 = Problem.from_json(f)
+    agents = [Agent(a["name"], a["B"], a["R"], a["lb"], a["ub"]) for a in d["agents"]]
+    objs = [Objective(o["name"], o["C"], o["Q"], o["ref"]) for o in d["objectives"]]
+    p2 = Problem(horizon=5, A=d["A"], x0=d["x0"], agents=agents, objectives=objs)
+    assert p1.topology == p2.topology
+    for x, y in zip(p1.data(), p2.data(), strict=True):
+        if isinstance(x, tuple):
+            for a, b in zip(x, y, strict=True):
+                np.testing.assert_array_equal(a, b)
+        else:
+            np.testing.assert_array_equal(x, y)
+
+
+def test_per_step_reference_and_constraints():
+    d = base()
+    d["objectives"][0]["ref"] = [[float(k)] for k in range(5)]
+    d["constraints"] = [{"A": {"a": [[1.0]], "c": [[1.0]]}, "b": [0.5]}]
+    d["objectives"][1]["agents"] = ["a", "b", "c"]
+    p = Problem.from_dict(d)
+    data = p.data()
+    assert data.ref[0].shape == (5, 1)
+    np.testing.assert_array_equal(data.ref[0][:, 0], np.arange(5.0))
+    assert data.Ain.shape == (9, 4) and data.bin.shape == (5, 9)
+    assert p.topology.general_agents == ((0, 2),)
+    assert 8 in p.topology.group_rows(1) and 8 not in p.topology.group_rows(0)
+
+
+def mutate(path, value):
+    d = copy.deepcopy(base())
+    target = d
+    for key in path[:-1]:
+        target = target[key]
+    if value is KeyError:
+        del target[path[-1]]
+    else:
+        target[path[-1]] = value
+    return d
+
+
+BAD = [
+    (("horizon",), 0, r"horizon: expected an integer >= 1"),
+    (("horizon",), 2.5, r"horizon: expected an integer >= 1"),
+    (("A",), [[1, 0], [0, 1], [0, 0]], r"A: expected a square"),
+    (("A",), [[1, 0, 0], [0, math.nan, 0], [0, 0, 1]], r"A: contains NaN"),
+    (("x0",), [0, 0], r"x0: expected 3 numbers"),
+    (("x0",), [0, math.inf, 0], r"x0: contains inf"),
+    (("w",), [[0, 0, 0]] * 4, r"w: expected 3 numbers or a 5 x 3 sequence"),
+    (("agents", 0, "B"), [[1.0], [0.0]], r"agents\[0\]\.B \(a\): expected an 3 x n_u matrix"),
+    (("agents", 1, "name"), "a", r"agents\[1\]\.name: duplicate agent name 'a'"),
+    (("agents", 1, "R"), [0.1, -0.2], r"agents\[1\]\.R \(b\): must be positive semi-definite, not negative"),
+    (("agents", 1, "R"), [[0.1, 0.05], [0.0, 0.2]], r"agents\[1\]\.R \(b\): must be symmetric"),
+    (("agents", 1, "R"), [0.1, 0.2, 0.3], r"agents\[1\]\.R \(b\): expected 2 x 2 or a diagonal of length 2"),
+    (("agents", 0, "lb"), [2.0], r"agents\[0\]\.lb \(a\): lb > ub at input 0"),
+    (("agents", 0, "ub"), [math.nan], r"agents\[0\]\.ub \(a\): contains NaN"),
+    (("agents", 0, "B"), KeyError, r"agents\[0\]\.B: required key is missing"),
+    (("objectives", 0, "Q"), [0.0], r"objectives\[0\]\.Q \(pos\): must be positive definite"),
+    (("objectives", 0, "Q"), [-1.0], r"objectives\[0\]\.Q \(pos\): must be positive definite"),
+    (("objectives", 1, "Q"), [[1.0, 2.0], [2.0, 1.0]], r"objectives\[1\]\.Q \(z\): expected 1 x 1"),
+    (("objectives", 0, "C"), [[1.0, 0.0]], r"objectives\[0\]\.C \(pos\): expected an n_y x 3 matrix"),
+    (("objectives", 0, "ref"), [1.0, 2.0], r"objectives\[0\]\.ref \(pos\): expected 1 numbers"),
+    (("objectives", 0, "ref"), [math.nan], r"objectives\[0\]\.ref \(pos\): contains NaN"),
+    (("objectives", 0, "agents"), ["a", "nope"], r"objectives\[0\]\.agents \(pos\): unknown agent 'nope'"),
+    (("objectives", 1, "name"), "pos", r"objectives\[1\]\.name: duplicate objective name 'pos'"),
+    (("agents",), [], r"agents: expected a non-empty list"),
+    (("objectives",), [], r"objectives: expected a non-empty list"),
+    (("bogus",), 1, r"problem: unknown key\(s\) \['bogus'\]"),
+]
+
+
+@pytest.mark.parametrize("path,value,message", BAD, ids=[m for _, _, m in BAD])
+def test_bad_input_names_the_field(path, value, message):
+    with pytest.raises(ProblemError, match=message):
+        Problem.from_dict(mutate(path, value))
+
+
+def test_agent_in_no_objective():
+    d = base()
+    d["objectives"][0]["agents"] = ["a", "b"]
+    d["objectives"][1]["agents"] = ["b"]
+    with pytest.raises(ProblemError, match=r"agents\[2\] \(c\): the agent belongs to no objective"):
+        Problem.from_dict(d)
+
+
+def test_unknown_agent_in_constraint():
+    d = base()
+    d["constraints"] = [{"A": {"zz": [[1.0]]}, "b": [1.0]}]
+    with pytest.raises(ProblemError, match=r"constraints\[0\]\.A: unknown agent 'zz'"):
+        Problem.from_dict(d)
+
+
+def test_constraint_shape():
+    d = base()
+    d["constraints"] = [{"A": {"b": [[1.0]]}, "b": [1.0]}]
+    with pytest.raises(ProblemError, match=r"constraints\[0\]\.A\.b: expected shape \(1 x 2\)"):
+        Problem.from_dict(d)
+
+
+def test_uncovered_input_refused_for_local_explicit():
+    d = base()
+    d["agents"][2]["lb"] = [-math.inf]
+    d["agents"][2]["ub"] = [math.inf]
+    p = Problem.from_dict(d)  # fine for the integrated MPC
+    with pytest.raises(ProblemError, match=r"agents\[2\] \(c\): input 0 appears in no constraint row.*NOTES item 10"):
+        p.check_local_explicit()
+
+
+def test_shared_agent_needs_own_rows():
+    d = base()
+    # b is shared; bound only its first input, cover the second by a row coupling it with c
+    d["agents"][1]["lb"] = [-1, -math.inf]
+    d["agents"][1]["ub"] = [1, math.inf]
+    d["constraints"] = [{"A": {"b": [[0.0, 1.0]], "c": [[1.0]]}, "b": [1.0]}]
+    p = Problem.from_dict(d)
+    with pytest.raises(ProblemError, match=r"agents\[1\] \(b\): shared by objectives"):
+        p.check_local_explicit()
+
+
+def test_row_across_groups_refused():
+    d = base()
+    d["constraints"] = [{"A": {"a": [[1.0]], "c": [[1.0]]}, "b": [1.0]}]
+    p = Problem.from_dict(d)
+    with pytest.raises(ProblemError, match=r"couples agents \['a', 'c'\] that share no objective"):
+        p.check_local_explicit()
+
+
+def test_missing_file_and_bad_json(tmp_path):
+    with pytest.raises(ProblemError, match=r"cannot read"):
+        Problem.from_json(tmp_path / "nope.json")
+    f = tmp_path / "bad.json"
+    f.write_text("{not json")
+    with pytest.raises(ProblemError, match=r"not valid JSON"):
+        Problem.from_json(f)
