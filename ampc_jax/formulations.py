@@ -9,7 +9,8 @@ equalities with a shared non-negative slack Z (eq.integMPC_F3)::
 and consensus ADMM iterates, per objective j and constraint row c:
 
 * local update (eq.F3_primal), a closed-form solve with a matrix factorised
-  once per control step::
+  once per control step (the setup stores K_j^-1 E_j and K_j^-1 Abar_j', so an
+  iteration is a few small matrix-vector products)::
 
       U_j = -(H_j + rho_j Abar_j' Abar_j)^-1 [E_j + Abar_j' (rho_j (Z_j - bbar_j) + gamma_j)]
 
@@ -43,6 +44,7 @@ Everything here handles one problem; batch with ``jax.vmap`` over
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -68,14 +70,19 @@ __all__ = [
 class LocalSetup(NamedTuple):
     """Per-control-step data of Local Explicit, built and factorised once.
 
-    Tuples run over objectives j; n_j = N_p * n_u,j and n_cj = rows of A_in,j.
+    Tuples run over objectives j; n_j = N_p n_u,j and m_j = N_p n_cj (rows of
+    Abar_j). The iteration works on the objectives stacked: n = sum n_j,
+    m = sum m_j.
 
-    H : (n_j, n_j) H_j.   E : (n_j,) E_j.
-    Ain : (n_cj, n_uj) per-step rows A_in,j (Abar_j = I_{N_p} (x) A_in,j).
-    bin : (N_p, n_cj) bbar_j, step by step.
+    H : tuple of (n_j, n_j) H_j.   E : tuple of (n_j,) E_j.
+    Ain : tuple of (n_cj, n_uj) per-step rows A_in,j (Abar_j = I_{N_p} (x) A_in,j).
+    bin : tuple of (N_p, n_cj) bbar_j, step by step.
     rho : (n_obj,) rho_j.
-    chol : (n_j, n_j) lower Cholesky factor of H_j + rho_j Abar_j' Abar_j.
-    den : (n_c,) sum of rho_j over the objectives carrying each row.
+    KE : (n,) stacked K_j^-1 E_j, K_j = H_j + rho_j Abar_j' Abar_j (factorised once).
+    KA : (n, m) block-diagonal K_j^-1 Abar_j'.
+    Abar : (m, n) block-diagonal Abar_j.
+    b : (m,) stacked bbar_j.   rho_rows : (m,) rho_j of each stacked row.
+    inv_den : (N_p n_c,) 1 / sum of rho_j over the objectives carrying each slack.
     lb, ub : (N_p, n_u) bounds, to project the consensus output.
     """
 
@@ -84,10 +91,71 @@ class LocalSetup(NamedTuple):
     Ain: tuple
     bin: tuple
     rho: Any
-    chol: tuple
-    den: Any
+    KE: Any
+    KA: Any
+    Abar: Any
+    b: Any
+    rho_rows: Any
+    inv_den: Any
     lb: Any
     ub: Any
+
+
+class _Layout(NamedTuple):
+    """Static index maps between Z (N_p n_c,) and the stacked rows (m,)."""
+
+    gather: np.ndarray  # (m,) index into Z.ravel() of each stacked row
+    scatter: np.ndarray  # (N_p n_c, max m_(c)) positions in the padded (m+1,) row vector
+    segment: np.ndarray  # (n_obj, m) 0/1: which objective a stacked row belongs to
+    u_sizes: tuple  # n_j
+    r_sizes: tuple  # m_j
+
+
+@functools.lru_cache(maxsize=64)
+def _layout(topology: Topology) -> _Layout:
+    T = topology
+    N, nc = T.horizon, T.n_c
+    gather, owner = [], []
+    for j in range(T.n_objectives):
+        rows = T.group_rows(j)
+        for k in range(N):
+            for c in rows:
+                gather.append(k * nc + c)
+                owner.append(j)
+    gather = np.asarray(gather, np.int32)
+    m = gather.size
+    lists: list[list[int]] = [[] for _ in range(N * nc)]
+    for pos, e in enumerate(gather):
+        lists[e].append(pos)
+    width = max(1, max(len(x) for x in lists))
+    scatter = np.full((N * nc, width), m, np.int32)  # index m = the appended zero
+    for e, x in enumerate(lists):
+        scatter[e, : len(x)] = x
+    segment = np.zeros((T.n_objectives, m))
+    segment[np.asarray(owner), np.arange(m)] = 1.0
+    u_sizes = tuple(N * len(T.group_columns(j)) for j in range(T.n_objectives))
+    r_sizes = tuple(N * len(T.group_rows(j)) for j in range(T.n_objectives))
+    return _Layout(gather, scatter, segment, u_sizes, r_sizes)
+
+
+def _block_diag(blocks: list[Any]) -> Any:
+    rows = sum(b.shape[0] for b in blocks)
+    cols = sum(b.shape[1] for b in blocks)
+    out = jnp.zeros((rows, cols), blocks[0].dtype)
+    r = c = 0
+    for blk in blocks:
+        out = out.at[r : r + blk.shape[0], c : c + blk.shape[1]].set(blk)
+        r += blk.shape[0]
+        c += blk.shape[1]
+    return out
+
+
+def _split(x: Any, sizes: tuple, horizon: int) -> tuple:
+    out, o = [], 0
+    for n in sizes:
+        out.append(x[o : o + n].reshape(horizon, -1))
+        o += n
+    return tuple(out)
 
 
 class ADMMState(NamedTuple):
@@ -204,7 +272,6 @@ class LocalExplicit:
     def __post_init__(self) -> None:
         self.topology.check_local_explicit()
 
-    # -- structure --------------------------------------------------------------
     def _rows(self, j: int) -> np.ndarray:
         return np.asarray(self.topology.group_rows(j), dtype=np.int32)
 
@@ -231,22 +298,32 @@ class LocalExplicit:
             rho_arr = jnp.stack(rhos)
         else:
             rho_arr = jnp.broadcast_to(jnp.asarray(rho, H[0].dtype), (T.n_objectives,))
-        chol = []
+        KE, KA, Abars = [], [], []
         for j in range(T.n_objectives):
-            AtA = Ains[j].T @ Ains[j]
-            K = H[j] + rho_arr[j] * jnp.kron(jnp.eye(T.horizon, dtype=AtA.dtype), AtA)
-            chol.append(jnp.linalg.cholesky(K))
-        den = jnp.zeros((T.n_c,), H[0].dtype)
-        for j in range(T.n_objectives):
-            den = den.at[self._rows(j)].add(rho_arr[j])
+            eye = jnp.eye(T.horizon, dtype=H[j].dtype)
+            Abar = jnp.kron(eye, Ains[j])
+            L = jnp.linalg.cholesky(H[j] + rho_arr[j] * Abar.T @ Abar)
+            rhs = jnp.concatenate([E[j][:, None], Abar.T], axis=1)
+            sol = jsl.cho_solve((L, True), rhs)
+            KE.append(sol[:, 0])
+            KA.append(sol[:, 1:])
+            Abars.append(Abar)
+        lay = _layout(T)
+        seg = jnp.asarray(lay.segment, rho_arr.dtype)
+        rho_rows = rho_arr @ seg
+        den = jnp.zeros((T.horizon * T.n_c,), rho_arr.dtype).at[lay.gather].add(rho_rows)
         return LocalSetup(
             H=tuple(H),
             E=tuple(E),
             Ain=tuple(Ains),
             bin=tuple(bins),
             rho=rho_arr,
-            chol=tuple(chol),
-            den=den,
+            KE=jnp.concatenate(KE),
+            KA=_block_diag(KA),
+            Abar=_block_diag(Abars),
+            b=jnp.concatenate([x.reshape(-1) for x in bins]),
+            rho_rows=rho_rows,
+            inv_den=1.0 / den,
             lb=data.lb,
             ub=data.ub,
         )
@@ -272,38 +349,29 @@ class LocalExplicit:
         """One ADMM iteration: local, global and dual updates (alg:1 steps 5-9)."""
         T = self.topology
         N = T.horizon
-        num = jnp.zeros_like(state.Z)
-        U_new, AU = [], []
-        for j in range(T.n_objectives):
-            rows = self._rows(j)
-            rho = setup.rho[j]
-            Zj = state.Z[:, rows]
-            rhs = setup.E[j] + (
-                (rho * (Zj - setup.bin[j]) + state.gamma[j]) @ setup.Ain[j]
-            ).reshape(-1)
-            U = -jsl.cho_solve((setup.chol[j], True), rhs).reshape(N, -1)
-            AUj = U @ setup.Ain[j].T
-            v = -AUj - state.gamma[j] / rho + setup.bin[j]
-            num = num.at[:, rows].add(rho * v)
-            U_new.append(U)
-            AU.append(AUj)
-        Z = jnp.maximum(num / setup.den, 0.0)
-        gam, pr, du = [], [], []
-        for j in range(T.n_objectives):
-            rows = self._rows(j)
-            rho = setup.rho[j]
-            r = AU[j] - setup.bin[j] + Z[:, rows]
-            s = rho * (Z[:, rows] - state.Z[:, rows])
-            gam.append(state.gamma[j] + rho * r)
-            pr.append(jnp.sum(r * r))
-            du.append(jnp.sum(s * s))
+        lay = _layout(T)
+        rho = setup.rho_rows
+        gamma = jnp.concatenate([g.reshape(-1) for g in state.gamma])
+        Zs_old = state.Z.reshape(-1)[lay.gather]
+        w = rho * (Zs_old - setup.b) + gamma
+        U = -(setup.KE + setup.KA @ w)  # eq.F3_primal, all objectives at once
+        AU = setup.Abar @ U
+        v = -AU - gamma / rho + setup.b
+        padded = jnp.concatenate([rho * v, jnp.zeros((1,), v.dtype)])
+        num = padded[lay.scatter].sum(axis=1)  # sum_j rho_j v_jc per slack
+        Z = jnp.maximum(num * setup.inv_den, 0.0)  # eq.F3_dual, rho-weighted (NOTES 14)
+        Zs = Z[lay.gather]
+        r = AU - setup.b + Zs
+        s = rho * (Zs - Zs_old)
+        gamma = gamma + rho * r  # eq.F3_multiplier
+        norms = jnp.asarray(lay.segment, r.dtype) @ jnp.stack([r * r, s * s], axis=1)
         return ADMMState(
-            U=tuple(U_new),
-            Z=Z,
-            gamma=tuple(gam),
+            U=_split(U, lay.u_sizes, N),
+            Z=Z.reshape(N, T.n_c),
+            gamma=_split(gamma, lay.r_sizes, N),
             iteration=state.iteration + 1,
-            primal=jnp.stack(pr),
-            dual=jnp.stack(du),
+            primal=norms[:, 0],
+            dual=norms[:, 1],
         )
 
     def converged(self, state: ADMMState) -> Any:

@@ -387,9 +387,7 @@ class Simulator:
         return merged_topology(T) if self.config.formulation == "integrated" else T
 
     # -- one control step --------------------------------------------------------------------
-    def model(
-        self, meas: Measurement, steer: Any, driver_torque: Any, v_ref: Any, mu: Any
-    ) -> Any:
+    def model(self, meas: Measurement, steer: Any, driver_torque: Any, v_ref: Any, mu: Any) -> Any:
         """The example's re-linearised control model (eq.CC_system / eq.VSC_system)."""
         c = self.config
         if c.example == "cruise":
@@ -536,10 +534,23 @@ class Simulator:
 
 
 def _cast(tree: Any, dtype: Any) -> Any:
-    return jax.tree.map(
-        lambda x: jnp.asarray(x, dtype) if jnp.issubdtype(jnp.asarray(x).dtype, jnp.floating) else x,
-        tree,
-    )
+    """Cast floating leaves to ``dtype``.
+
+    ``manoeuvres.SCENARIOS`` is built at import time; when x64 was enabled only
+    afterwards (the CLI imports this module before enabling it) its arrays are
+    float32. Widening float32 to float64 goes through the shortest decimal
+    representation, so 0.3 becomes 0.3 and not 0.30000001192.
+    """
+
+    def cast(x: Any) -> Any:
+        a = np.asarray(x)
+        if not np.issubdtype(a.dtype, np.floating):
+            return x
+        if a.dtype == np.float32 and jnp.dtype(dtype) == np.float64:
+            a = a.astype(str).astype(np.float64)
+        return jnp.asarray(a, dtype)
+
+    return jax.tree.map(cast, tree)
 
 
 def run_closed_loop(
@@ -549,7 +560,15 @@ def run_closed_loop(
 
     ``dtype`` casts the scenario (default: float64 when x64 is enabled).
     """
-    scenario = _cast(scenario, dtype or jnp.result_type(float))
+    dtype = dtype or jnp.result_type(float)
+    scenario = jax.tree.map(
+        lambda x: (
+            jnp.asarray(x).astype(dtype)
+            if jnp.issubdtype(jnp.asarray(x).dtype, jnp.floating)
+            else x
+        ),
+        scenario,
+    )
     return Simulator(config).run(scenario, n_steps, fault)
 
 
@@ -579,8 +598,10 @@ def simulate_batch(
     deadlock intermittently on 2-core CPUs (``docs/results.md``): run with
     ``taskset -c 0`` or the XLA flags documented there.
     """
+    dtype = dtype or jnp.result_type(float)
+    scenarios = _cast(scenarios, dtype)
     if mu is not None:
-        scenarios = scenarios._replace(mu=jnp.asarray(mu))
+        scenarios = scenarios._replace(mu=jnp.asarray(mu, dtype))
 
     def one(sc: Scenario) -> SimLog:
         return run_closed_loop(config, sc, n_steps, None, dtype)
@@ -687,7 +708,9 @@ class SimResult:
                 m[f"iterations_p95{name}"] = _pct(i, 95)
                 m[f"iterations_max{name}"] = _max(i)
             m["e_sub_max_per_input"] = {
-                n: _max(es[:, k]) for k, n in enumerate(c.input_names) if np.isfinite(es[:, k]).any()
+                n: _max(es[:, k])
+                for k, n in enumerate(c.input_names)
+                if np.isfinite(es[:, k]).any()
             }
             st = np.asarray(lg.status)
             m["status_counts"] = {int(s): int(np.sum(st == s)) for s in np.unique(st)}
@@ -782,7 +805,9 @@ def replay_timing(config: SimConfig, log: SimLog, repeats: int = 3) -> dict[str,
     le = LocalExplicit(T, max_iter=config.max_iter, tol_primal=tp, tol_dual=td)
     ia = IntegratedADMM(T, max_iter=max(config.max_iter, 2000), tol_primal=tp, tol_dual=td)
     if config.formulation == "integrated":
-        raise ValueError("replay_timing compares Local Explicit with IntegratedADMM; run local_explicit")
+        raise ValueError(
+            "replay_timing compares Local Explicit with IntegratedADMM; run local_explicit"
+        )
     data, warm = log.data, log.warm
     K = int(np.shape(log.t)[0])
     dtype = data.A.dtype

@@ -67,16 +67,15 @@ def test_unequal_given_rho_still_exact():
 def equal_weight_step(solver, setup, state):
     """The printed eq.F3_dual (equal weights 1/m_(c)); used only to show it is wrong."""
     T = solver.topology
-    eq = setup._replace(den=jnp.zeros_like(setup.den))
-    for j in range(T.n_objectives):
-        eq = eq._replace(den=eq.den.at[solver._rows(j)].add(1.0))
-    num = jnp.zeros_like(state.Z)
     out = solver.step(setup, state)
+    num = jnp.zeros_like(state.Z)
+    count = jnp.zeros_like(state.Z)
     for j in range(T.n_objectives):
         rows = solver._rows(j)
         v = -(out.U[j] @ setup.Ain[j].T) - state.gamma[j] / setup.rho[j] + setup.bin[j]
         num = num.at[:, rows].add(v)
-    Z = jnp.maximum(num / eq.den, 0.0)
+        count = count.at[:, rows].add(1.0)
+    Z = jnp.maximum(num / count, 0.0)
     gam = tuple(
         state.gamma[j] + setup.rho[j] * (out.U[j] @ setup.Ain[j].T - setup.bin[j] + Z[:, solver._rows(j)])
         for j in range(T.n_objectives)

@@ -1,0 +1,200 @@
+"""Figures of the closed-loop runs, after the paper's (section "Experimental Studies").
+
+* :func:`vehicle_response` -- fig_CC_vehicle / fig_VSC_*_vehicle: speed, yaw rate
+  and wheel slip/speeds against their references, and the path, for one or
+  more runs (e.g. one objective against both);
+* :func:`wheel_torques` -- fig_CC_torque / fig_VSC_*_torque: the agents' inputs
+  and the resulting wheel torques;
+* :func:`convergence` -- fig_CC_time / fig_VSC_*_time: (a) torque suboptimality
+  e_sub (eq.suboptimality), (b) iterations, (c) time ratio r_time (eq.t_ratio),
+  as box plots over the "whole" run and the "focus" window, plus time series;
+* :func:`yaw_error_comparison` -- yaw-rate error of several runs over time.
+
+All functions take :class:`~ampc_jax.simulation.SimResult` objects and return a
+matplotlib Figure; :func:`save` writes PNGs with the Agg backend (headless).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+__all__ = ["convergence", "save", "vehicle_response", "wheel_torques", "yaw_error_comparison"]
+
+
+def _shade(ax: Any, res: Any) -> None:
+    ax.axvspan(*res.focus, color="0.92", zorder=0, label="_focus")
+
+
+def _label(res: Any) -> str:
+    c = res.config
+    if c.formulation == "none":
+        return "driver alone" if c.example == "stability" else "no MPC (driver PI)"
+    return "+".join(c.enabled) + (
+        "" if c.formulation == "local_explicit" else f" ({c.formulation})"
+    )
+
+
+def vehicle_response(results: Sequence[Any], labels: Sequence[str] | None = None) -> Any:
+    """Vehicle response against references for one or several runs of one scenario.
+
+    Panels: (a) speed v_x and v_ref, (b) yaw rate and the yaw-rate reference of
+    eq.CC_objective, (c) rear-wheel slip (with the desired slip of
+    eq.VSC_objective for stability runs), (d) rear wheel speeds against
+    omega_ref (stability) or the steering angle (cruise), (e) path Y(X).
+    The grey band is the focus window.
+    """
+    labels = list(labels) if labels else [_label(r) for r in results]
+    fig, axs = plt.subplots(3, 2, figsize=(11, 9), constrained_layout=True)
+    ax = axs.ravel()
+    r0 = results[0]
+    t0 = r0.log.t
+    for a in ax[:5]:
+        _shade(a, r0)
+    ax[0].plot(t0, r0.log.v_ref, "k--", lw=1, label="v_ref")
+    ax[1].plot(t0, r0.log.yaw_ref, "k--", lw=1, label="reference")
+    stab = r0.config.example == "stability"
+    if stab:
+        s = float(r0.config.settings.slip_des)
+        ax[2].axhline(s, color="k", ls="--", lw=0.8, label="+-S_x,des")
+        ax[2].axhline(-s, color="k", ls="--", lw=0.8)
+        ax[3].plot(t0, r0.log.omega_ref, "k--", lw=1, label="omega_ref")
+    for res, lab in zip(results, labels, strict=True):
+        lg = res.log
+        (line,) = ax[0].plot(lg.t, lg.v_x, lw=1.3, label=lab)
+        col = line.get_color()
+        ax[1].plot(lg.t, lg.yaw_rate, color=col, lw=1.3, label=lab)
+        ax[2].plot(lg.t, lg.slip[:, 2], color=col, lw=1.2, label=f"{lab} RL")
+        ax[2].plot(lg.t, lg.slip[:, 3], color=col, lw=1.0, ls=":", label=f"{lab} RR")
+        if stab:
+            ax[3].plot(lg.t, lg.omega[:, 2], color=col, lw=1.2, label=f"{lab} RL")
+            ax[3].plot(lg.t, lg.omega[:, 3], color=col, lw=1.0, ls=":", label=f"{lab} RR")
+        else:
+            ax[3].plot(lg.t, np.degrees(lg.steer), color=col, lw=1.2, label=lab)
+        ax[4].plot(lg.t, lg.Y - lg.path_y, color=col, lw=1.2, label=lab)
+        ax[5].plot(lg.X, lg.Y, color=col, lw=1.3, label=lab)
+    ax[5].plot(r0.log.X, r0.log.path_y, "k--", lw=1, label="path")
+    ax[0].set_ylabel("v_x (m/s)")
+    ax[1].set_ylabel("yaw rate (rad/s)")
+    ax[2].set_ylabel("rear slip ratio (-)")
+    if stab:
+        ax[2].set_ylim(-1.0, 1.0)
+    ax[3].set_ylabel("rear wheel speed (rad/s)" if stab else "road-wheel angle (deg)")
+    ax[4].set_ylabel("lateral error Y - y_path (m)")
+    ax[5].set_xlabel("X (m)")
+    ax[5].set_ylabel("Y (m)")
+    for a in ax[:5]:
+        a.set_xlabel("t (s)")
+    for a in ax:
+        a.grid(alpha=0.3)
+        a.legend(fontsize=7, loc="best")
+    fig.suptitle(f"{r0.scenario}: vehicle response (grey: focus window)")
+    return fig
+
+
+def wheel_torques(res: Any) -> Any:
+    """Agents' first-step inputs (applied) and the four wheel torques of one run."""
+    lg, c = res.log, res.config
+    fig, axs = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True, constrained_layout=True)
+    for a in axs:
+        _shade(a, res)
+    for k, name in enumerate(c.input_names):
+        if np.any(lg.u[:, k] != 0):
+            axs[0].plot(lg.t, lg.u[:, k], lw=1.2, label=name)
+    if c.example == "stability":
+        axs[0].plot(lg.t, lg.driver_torque, "k--", lw=0.9, label="driver T_DTR")
+    axs[0].set_ylabel("agent input (Nm)")
+    for k, w in enumerate(("FL", "FR", "RL", "RR")):
+        axs[1].plot(lg.t, lg.torques[:, k], lw=1.2, label=w)
+    axs[1].set_ylabel("wheel torque (Nm)")
+    axs[1].set_xlabel("t (s)")
+    for a in axs:
+        a.grid(alpha=0.3)
+        a.legend(fontsize=8, ncol=5)
+    fig.suptitle(f"{res.scenario}: torque commands ({_label(res)}, {c.formulation})")
+    return fig
+
+
+def _box(ax: Any, whole: np.ndarray, focus: np.ndarray, ylabel: str, log: bool = False) -> None:
+    w = np.asarray(whole, float)
+    f = np.asarray(focus, float)
+    w, f = w[np.isfinite(w)], f[np.isfinite(f)]
+    if log:
+        floor = 1e-6
+        w, f = np.maximum(w, floor), np.maximum(f, floor)
+    ax.boxplot([w, f], whis=(5, 95), showfliers=True, flierprops={"markersize": 2})
+    ax.set_xticks([1, 2], ["Whole", "Focus"])
+    if log:
+        ax.set_yscale("log")
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3, axis="y")
+
+
+def convergence(res: Any) -> Any:
+    """(a) e_sub, (b) iterations, (c) r_time: "Whole" vs "Focus" boxes and time series.
+
+    Boxes span the quartiles, whiskers the 5th..95th percentiles.
+    """
+    lg = res.log
+    fm = res.focus_mask
+    es = np.nanmax(np.where(np.isfinite(lg.e_sub), lg.e_sub, -np.inf), axis=1)
+    es = np.where(np.isfinite(es), es, np.nan)
+    ncol = 3 if res.timing is not None else 2
+    fig, axs = plt.subplots(2, ncol, figsize=(4 * ncol, 6.5), constrained_layout=True)
+    _box(axs[0, 0], es, es[fm], "(a) e_sub, max over inputs (Nm)", log=True)
+    _box(axs[0, 1], lg.iterations, lg.iterations[fm], "(b) iterations")
+    for a in axs[1]:
+        _shade(a, res)
+        a.set_xlabel("t (s)")
+        a.grid(alpha=0.3)
+    axs[1, 0].semilogy(lg.t, np.maximum(es, 1e-6), lw=1)
+    axs[1, 0].set_ylabel("e_sub (Nm)")
+    axs[1, 1].plot(lg.t, lg.iterations, lw=1, label="Local Explicit")
+    axs[1, 1].set_ylabel("iterations")
+    if res.timing is not None:
+        r = res.timing["r_time"]
+        _box(axs[0, 2], r, r[fm], "(c) r_time = t_distributed / t_integrated")
+        axs[0, 2].axhline(1.0, color="r", lw=0.8)
+        axs[1, 2].plot(lg.t, r, lw=1)
+        axs[1, 2].axhline(1.0, color="r", lw=0.8)
+        axs[1, 2].set_ylabel("r_time")
+        axs[1, 1].plot(
+            lg.t, res.timing["integrated_iterations"], lw=1, alpha=0.7, label="IntegratedADMM"
+        )
+        axs[1, 1].legend(fontsize=8)
+    fig.suptitle(f"{res.scenario}: convergence and computational efficiency")
+    return fig
+
+
+def yaw_error_comparison(results: Sequence[Any], labels: Sequence[str] | None = None) -> Any:
+    """Yaw-rate error (yaw rate - reference) of several runs, RMS (focus window) in the legend."""
+    labels = list(labels) if labels else [_label(r) for r in results]
+    fig, ax = plt.subplots(figsize=(9, 3.8), constrained_layout=True)
+    _shade(ax, results[0])
+    for res, lab in zip(results, labels, strict=True):
+        e = res.log.yaw_rate - res.log.yaw_ref
+        rms = float(np.sqrt(np.mean(e[res.focus_mask] ** 2)))
+        ax.plot(res.log.t, e, lw=1.2, label=f"{lab} (rms focus {rms:.4f} rad/s)")
+    ax.axhline(0, color="k", lw=0.6)
+    ax.set_xlabel("t (s)")
+    ax.set_ylabel("yaw-rate error (rad/s)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(f"{results[0].scenario}: yaw-rate error")
+    return fig
+
+
+def save(fig: Any, path: str | Path, dpi: int = 120) -> Path:
+    """Write ``fig`` as PNG and close it; returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path

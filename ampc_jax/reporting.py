@@ -1,0 +1,297 @@
+"""``ampc simulate`` and ``ampc demo``: run closed loops, write CSV/JSON/PNG outputs.
+
+``ampc simulate SCENARIO --out DIR`` writes ``timeseries.csv`` (one row per
+control step), ``metrics.json`` (:meth:`SimResult.metrics`) and the figures of
+:mod:`ampc_jax.figures`. ``ampc demo`` runs the cruise-control lane change with
+both objectives and with LST alone and prints the key numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["add_cli_commands", "cmd_demo", "cmd_simulate", "write_metrics", "write_timeseries"]
+
+
+def _enable_x64(float32: bool = False) -> None:
+    import jax
+
+    if not float32:
+        jax.config.update("jax_enable_x64", True)
+
+
+def write_timeseries(res: Any, path: str | Path) -> Path:
+    """One CSV row per control step: time, states, references, inputs, e_sub, solver stats."""
+    lg, c = res.log, res.config
+    cols: dict[str, Any] = {
+        "t": lg.t,
+        "X": lg.X,
+        "Y": lg.Y,
+        "path_y": lg.path_y,
+        "psi": lg.psi,
+        "v_x": lg.v_x,
+        "v_ref": lg.v_ref,
+        "v_y": lg.v_y,
+        "yaw_rate": lg.yaw_rate,
+        "yaw_ref": lg.yaw_ref,
+        "steer": lg.steer,
+        "driver_torque": lg.driver_torque,
+        "omega_ref": lg.omega_ref,
+    }
+    for k, w in enumerate(("FL", "FR", "RL", "RR")):
+        cols[f"omega_{w}"] = lg.omega[:, k]
+        cols[f"slip_{w}"] = lg.slip[:, k]
+    for k, n in enumerate(c.input_names):
+        cols[f"u_{n}"] = lg.u[:, k]
+    for k, n in enumerate(c.input_names):
+        cols[f"u_shadow_{n}"] = lg.u_shadow[:, k]
+    for k, n in enumerate(c.input_names):
+        cols[f"e_sub_{n}"] = lg.e_sub[:, k]
+    for k, w in enumerate(("FL", "FR", "RL", "RR")):
+        cols[f"torque_{w}"] = lg.torques[:, k]
+    cols.update(
+        iterations=lg.iterations,
+        status=lg.status,
+        shadow_iterations=lg.shadow_iterations,
+        shadow_status=lg.shadow_status,
+        fallback=np.asarray(lg.fallback, int),
+    )
+    if res.timing is not None:
+        cols["t_distributed_s"] = res.timing["t_distributed"]
+        cols["t_integrated_s"] = res.timing["t_integrated"]
+        cols["r_time"] = res.timing["r_time"]
+        cols["integrated_iterations"] = res.timing["integrated_iterations"]
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    names = list(cols)
+    arrays = [np.asarray(cols[n]) for n in names]
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(names)
+        for k in range(len(lg.t)):
+            w.writerow([_fmt(a[k]) for a in arrays])
+    return path
+
+
+def _fmt(x: Any) -> str:
+    x = x.item() if hasattr(x, "item") else x
+    if isinstance(x, float):
+        return "" if not np.isfinite(x) else f"{x:.9g}"
+    return str(x)
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+def write_metrics(metrics: dict[str, Any], path: str | Path) -> Path:
+    """``metrics.json`` (NaN written as null)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(_jsonable(metrics), indent=2) + "\n")
+    return path
+
+
+def _figures(results: list[Any], out: Path, stem: str = "") -> list[Path]:
+    from . import figures
+
+    main = results[0]
+    paths = [
+        figures.save(figures.vehicle_response(results), out / f"{stem}vehicle_response.png"),
+        figures.save(figures.wheel_torques(main), out / f"{stem}wheel_torques.png"),
+    ]
+    if main.config.formulation != "none":
+        paths.append(figures.save(figures.convergence(main), out / f"{stem}convergence.png"))
+    if len(results) > 1:
+        paths.append(
+            figures.save(figures.yaw_error_comparison(results), out / f"{stem}yaw_error.png")
+        )
+    return paths
+
+
+def _bar(total: int, quiet: bool) -> Any:
+    from tqdm import tqdm
+
+    return tqdm(total=total, disable=quiet, bar_format="{desc:<28}{bar:20}| {n_fmt}/{total_fmt}")
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """``ampc simulate``: one scenario's closed loop, its metrics and figures."""
+    _enable_x64(args.float32)
+    import jax.numpy as jnp
+
+    from .manoeuvres import SCENARIOS
+    from .simulation import config_for, replay_timing, simulate
+
+    if args.scenario not in SCENARIOS:
+        print(
+            f"ampc: error: unknown scenario {args.scenario!r}; expected one of {sorted(SCENARIOS)}",
+            file=sys.stderr,
+        )
+        return 2
+    spec = SCENARIOS[args.scenario]
+    try:
+        cfg = config_for(
+            spec,
+            formulation=args.formulation,
+            disabled=tuple(args.disable or ()),
+            warm_start=not args.cold_start,
+            shadow=not args.no_shadow,
+        )
+    except ValueError as exc:
+        print(f"ampc: error: {exc}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    timing = cfg.formulation == "local_explicit" and not args.no_timing and cfg.shadow
+    bar = _bar(4, args.quiet)
+    bar.set_description("compile + run closed loop")
+    dtype = jnp.float32 if args.float32 else jnp.float64
+    res = simulate(spec, cfg, duration=args.duration, mu=args.mu, dtype=dtype)
+    bar.update(1)
+    bar.set_description("replay timing (r_time)")
+    if timing:
+        import jax
+
+        log = jax.tree.map(jnp.asarray, res.log)
+        res.timing = replay_timing(cfg, log, repeats=args.repeats)
+    bar.update(1)
+    bar.set_description("write csv/json")
+    m = res.metrics()
+    write_timeseries(res, out / "timeseries.csv")
+    write_metrics(m, out / "metrics.json")
+    bar.update(1)
+    bar.set_description("figures")
+    figs = _figures([res], out)
+    bar.update(1)
+    bar.close()
+    _summary(m)
+    print(f"wrote {out / 'timeseries.csv'}, {out / 'metrics.json'}")
+    for p in figs:
+        print(f"figure {p}")
+    return 0
+
+
+def _summary(m: dict[str, Any]) -> None:
+    def f(key: str, fmt: str = ".3g") -> str:
+        v = m.get(key)
+        return (
+            "n/a" if v is None or (isinstance(v, float) and not np.isfinite(v)) else format(v, fmt)
+        )
+
+    print(
+        f"{m['scenario']} [{m['formulation']}; {'+'.join(m['objectives']) or 'none'}; "
+        f"N_p={m['horizon']}; {'warm' if m['warm_start'] else 'cold'} start]"
+    )
+    if m["formulation"] != "none":
+        print(
+            f"  e_sub (Nm)      p50 {f('e_sub_p50')}  p95 {f('e_sub_p95')}  max {f('e_sub_max')}"
+            f"   focus p95 {f('e_sub_p95_focus')}"
+        )
+        print(
+            f"  iterations      p50 {f('iterations_p50')}  p95 {f('iterations_p95')}  "
+            f"max {f('iterations_max')}"
+        )
+        if "r_time_median" in m:
+            print(
+                f"  r_time          median {f('r_time_median')}  p95 {f('r_time_p95')}  "
+                f"(LE {f('t_distributed_median_us', '.0f')} us vs integrated "
+                f"{f('t_integrated_median_us', '.0f')} us)"
+            )
+    print(
+        f"  yaw-rate rms    {f('yaw_rms')} rad/s (focus {f('yaw_rms_focus')}),"
+        f"  rear |slip| max {f('rear_slip_abs_max')}, fallbacks {m['fallbacks']}"
+    )
+    print(
+        f"  run time        {f('wall_time_s')} s for {f('duration_s')} s simulated "
+        f"({f('realtime_factor', '.1f')}x real time; compile {f('compile_time_s', '.1f')} s)"
+    )
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """``ampc demo``: cruise-control lane change, LST+YRT against LST alone."""
+    _enable_x64()
+    import jax
+    import jax.numpy as jnp
+
+    from .simulation import config_for, replay_timing, simulate
+
+    out = Path(args.out)
+    t_start = time.perf_counter()
+    bar = _bar(4, args.quiet)
+    bar.set_description("LST+YRT: compile + run")
+    both = simulate("cruise_lane_change", config_for("cruise_lane_change"))
+    bar.update(1)
+    bar.set_description("LST+YRT: replay timing")
+    both.timing = replay_timing(both.config, jax.tree.map(jnp.asarray, both.log), repeats=3)
+    bar.update(1)
+    bar.set_description("LST only: compile + run")
+    lst = simulate("cruise_lane_change", config_for("cruise_lane_change", disabled=("YRT",)))
+    bar.update(1)
+    bar.set_description("figures")
+    mb, ml = both.metrics(), lst.metrics()
+    write_timeseries(both, out / "timeseries.csv")
+    write_timeseries(lst, out / "lst_only" / "timeseries.csv")
+    write_metrics({"LST+YRT": mb, "LST": ml}, out / "metrics.json")
+    figs = _figures([both, lst], out)
+    bar.update(1)
+    bar.close()
+    _summary(mb)
+    _summary(ml)
+    ratio = ml["yaw_rms_focus"] / mb["yaw_rms_focus"] if mb["yaw_rms_focus"] else float("nan")
+    print(
+        f"enabling YRT: yaw-rate rms in the focus window {ml['yaw_rms_focus']:.4f} -> "
+        f"{mb['yaw_rms_focus']:.4f} rad/s ({ratio:.2f}x lower)"
+    )
+    print(f"demo took {time.perf_counter() - t_start:.1f} s; outputs in {out}")
+    for p in figs:
+        print(f"figure {p}")
+    return 0
+
+
+def add_cli_commands(sub: Any) -> None:
+    """Register ``simulate`` and ``demo`` on the ``ampc`` sub-parsers."""
+    from .simulation import FORMULATIONS
+
+    p = sub.add_parser("simulate", help="closed-loop vehicle simulation of a test manoeuvre")
+    p.add_argument(
+        "scenario",
+        help="cruise_lane_change, stability_launch_brake or stability_dlc",
+    )
+    p.add_argument("--formulation", choices=FORMULATIONS, default="local_explicit")
+    p.add_argument(
+        "--disable",
+        action="append",
+        metavar="OBJECTIVE",
+        help="leave an objective out (LST/YRT or VSC/WSC); repeatable",
+    )
+    p.add_argument("--mu", type=float, default=None, help="road friction (default: scenario's)")
+    p.add_argument("--duration", type=float, default=None, help="simulated seconds")
+    p.add_argument("--cold-start", action="store_true", help="cold start every step (paper)")
+    p.add_argument("--no-shadow", action="store_true", help="skip the integrated shadow")
+    p.add_argument("--no-timing", action="store_true", help="skip the r_time replay")
+    p.add_argument("--repeats", type=int, default=3, help="timing repeats per step")
+    p.add_argument("--float32", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--out", default="out", help="output directory")
+    p.set_defaults(func=cmd_simulate)
+
+    d = sub.add_parser("demo", help="cruise-control lane change: LST+YRT vs LST alone")
+    d.add_argument("--out", default="ampc_demo", help="output directory")
+    d.add_argument("--quiet", action="store_true", help="no progress bar")
+    d.set_defaults(func=cmd_demo)

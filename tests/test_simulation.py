@@ -1,0 +1,157 @@
+"""Tests of ampc_jax.simulation: closed loop, shadow e_sub, --disable, fallback, CLI."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ampc_jax.cli import main
+from ampc_jax.integrated import solve_reference
+from ampc_jax.simulation import (
+    SimConfig,
+    build_topology,
+    config_for,
+    simulate,
+)
+
+pytestmark = pytest.mark.timeout(240)
+
+SHORT = 2.0  # s simulated in the closed-loop tests (40 control steps)
+
+
+@pytest.fixture(scope="module")
+def cruise_run():
+    return simulate("cruise_lane_change", duration=SHORT)
+
+
+@pytest.fixture(scope="module")
+def stability_run():
+    return simulate("stability_launch_brake", duration=SHORT)
+
+
+def _check_bounds(res):
+    lg = res.log
+    assert np.all(np.isfinite(lg.u)) and np.all(np.isfinite(lg.torques))
+    lb = np.asarray(lg.data.lb[:, 0, :])
+    ub = np.asarray(lg.data.ub[:, 0, :])
+    T, agent_idx, _ = build_topology(res.config)
+    offs = np.cumsum([0, 1, 1, 2])
+    cols = np.concatenate([np.arange(offs[i], offs[i + 1]) for i in agent_idx])
+    u = lg.u[:, cols]
+    assert np.all(u >= lb - 1e-9) and np.all(u <= ub + 1e-9)
+
+
+def test_cruise_closed_loop_finite_and_bounded(cruise_run):
+    res = cruise_run
+    lg = res.log
+    assert lg.t.shape == (40,)
+    _check_bounds(res)
+    assert np.all(lg.status == 0) or np.all(np.isin(lg.status, (0, 1)))
+    assert int(np.sum(lg.fallback)) == 0
+    # the controller tracks speed: v_ref is 18 m/s for the first second
+    assert abs(float(lg.v_x[19]) - 18.0) < 0.5
+    m = res.metrics()
+    for key in ("e_sub_p95", "iterations_max", "yaw_rms", "rear_slip_abs_max", "realtime_factor"):
+        assert np.isfinite(m[key]), key
+    assert m["fallbacks"] == 0
+
+
+def test_stability_closed_loop_finite_and_bounded(stability_run):
+    res = stability_run
+    lg = res.log
+    _check_bounds(res)
+    tcr = lg.u[:, 0]
+    T = lg.driver_torque
+    assert np.all(tcr >= np.minimum(T, 0) - 1e-9) and np.all(tcr <= np.maximum(T, 0) + 1e-9)
+    # VSC+WSC keep the rear slip near the target on mu = 0.3 (driver alone: > 0.5)
+    assert np.max(np.abs(lg.slip[:, 2:])) < 0.3
+
+
+def test_shadow_e_sub_matches_clarabel(cruise_run, stability_run):
+    for res in (cruise_run, stability_run):
+        T, agent_idx, _ = build_topology(res.config)
+        offs = np.cumsum([0, 1, 1, 2])
+        cols = np.concatenate([np.arange(offs[i], offs[i + 1]) for i in agent_idx])
+        for k in (5, 20, 39):
+            data = jax.tree.map(lambda x, k=k: np.asarray(x[k]), res.log.data)
+            ref = solve_reference(T, data)
+            assert ref.status == 0
+            u_int = np.asarray(ref.u[0])
+            np.testing.assert_allclose(res.log.u_shadow[k, cols], u_int, atol=5e-3)
+            e_ref = np.abs(res.log.u_ctrl[k, cols] - u_int)
+            np.testing.assert_allclose(res.log.e_sub[k, cols], e_ref, atol=5e-3)
+
+
+def test_disable_builds_reduced_topology():
+    T, agents, objs = build_topology(SimConfig("cruise", disabled=("YRT",)))
+    assert T.agent_names == ("DTR", "FDB") and agents == (0, 2)
+    assert T.objective_names == ("LST",) and T.groups == ((0, 1),) and objs == (0,)
+    T, agents, objs = build_topology(SimConfig("stability", disabled=("VSC",)))
+    assert T.agent_names == ("TCR", "RTV") and T.objective_names == ("WSC",)
+    T, _, _ = build_topology(config_for("stability_dlc"))
+    assert T.agent_names == ("TCR", "RTV", "FDB") and T.groups == ((1, 2), (0, 1))
+    with pytest.raises(ValueError, match="unknown objective"):
+        SimConfig("cruise", disabled=("VSC",))
+    with pytest.raises(ValueError):
+        SimConfig("cruise", disabled=("LST", "YRT"))
+
+
+def test_disabled_agent_gets_zero_input():
+    res = simulate(
+        "stability_launch_brake",
+        config_for("stability_launch_brake", disabled=("VSC",), shadow=False),
+        duration=1.0,
+    )
+    assert np.all(res.log.u[:, 2:] == 0.0)  # FDB belongs to VSC only
+    assert np.all(np.isfinite(res.log.torques))
+
+
+def test_fallback_never_emits_nan(cruise_run):
+    n = 40
+    fault = np.zeros(n, bool)
+    fault[[10, 11, 25]] = True
+    res = simulate("cruise_lane_change", duration=SHORT, fault=fault)
+    lg = res.log
+    assert int(np.sum(lg.fallback)) == 3
+    assert np.all(lg.fallback[fault])
+    assert np.all(np.isfinite(lg.u)) and np.all(np.isfinite(lg.torques))
+    # the held command is the previous one (bounds are constant in cruise control)
+    np.testing.assert_allclose(lg.u[10], lg.u[9])
+    np.testing.assert_allclose(lg.u[11], lg.u[9])
+    assert res.metrics()["fallbacks"] == 3
+    # after the fault the controller recovers (cold restart of the warm start)
+    assert np.all(lg.status[~fault] <= 1) and np.all(lg.status[fault] == 2)
+    assert np.all(np.isfinite(np.asarray(lg.v_x)))
+
+
+def test_cli_simulate_writes_outputs(tmp_path, cruise_run, capsys):
+    out = tmp_path / "run"
+    code = main(
+        ["simulate", "cruise_lane_change", "--duration", str(SHORT), "--out", str(out),
+         "--quiet", "--repeats", "1"]
+    )  # fmt: skip
+    assert code == 0
+    for name in ("timeseries.csv", "metrics.json", "vehicle_response.png",
+                 "wheel_torques.png", "convergence.png"):  # fmt: skip
+        assert (out / name).stat().st_size > 0, name
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["steps"] == 40 and m["fallbacks"] == 0
+    assert m["r_time_median"] > 0
+    header = (out / "timeseries.csv").read_text().splitlines()[0].split(",")
+    assert {"t", "v_x", "yaw_rate", "e_sub_DTR", "iterations", "r_time"} <= set(header)
+    assert "e_sub" in capsys.readouterr().out
+
+
+def test_cli_rejects_unknown_objective(capsys):
+    code = main(["simulate", "cruise_lane_change", "--disable", "WSC", "--out", "x", "--quiet"])
+    assert code == 2
+    assert "unknown objective" in capsys.readouterr().err
+
+
+def test_float32_closed_loop():
+    cfg = config_for("stability_launch_brake", shadow=False)
+    res = simulate("stability_launch_brake", cfg, duration=1.0, dtype=jnp.float32)
+    assert res.log.v_x.dtype == np.float32
+    assert np.all(np.isfinite(res.log.torques))
