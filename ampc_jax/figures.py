@@ -160,7 +160,7 @@ def convergence(res: Any) -> Any:
     axs[1, 1].set_ylabel("iterations")
     if res.timing is not None:
         r = res.timing["r_time"]
-        _box(axs[0, 2], r, r[fm], "(c) r_time = t_distributed / t_integrated")
+        _box(axs[0, 2], r, r[fm], "(c) r_time (eq.t_ratio)")
         axs[0, 2].axhline(1.0, color="r", lw=0.8)
         axs[1, 2].plot(lg.t, r, lw=1)
         axs[1, 2].axhline(1.0, color="r", lw=0.8)

@@ -28,7 +28,8 @@ and consensus ADMM iterates, per objective j and constraint row c:
 * stopping rule (eq.Convergence, per objective, NOTES items 6 and 17)::
 
       ||r_j||^2 = ||Abar_j U_j - bbar_j + Z_j||^2 <= eps_r,
-      ||s_j||^2 = ||rho_j (Z_j^q - Z_j^(q-1))||^2 <= eps_s.
+      ||s_j||^2 = ||rho_j (Z_j^q - Z_j^(q-1))||^2 <= eps_s     (``dual_residual="paper"``)
+      ||Z_j^q - Z_j^(q-1)||^2 <= eps_s                          (default, ``"slack"``)
 
 Objective j's local cost carries its outputs' tracking cost and the input
 weights of its agents shared out as R_(i) / m_(i) (eq.F1_obj with NOTES item 8).
@@ -150,6 +151,17 @@ def _block_diag(blocks: list[Any]) -> Any:
     return out
 
 
+class _Flat(NamedTuple):
+    """The iterate stacked over objectives (the loop carry)."""
+
+    Z: Any  # (N_p n_c,)
+    gamma: Any  # (m,)
+    U: Any  # (n,)
+    iteration: Any
+    primal: Any
+    dual: Any
+
+
 def _split(x: Any, sizes: tuple, horizon: int) -> tuple:
     out, o = [], 0
     for n in sizes:
@@ -258,6 +270,13 @@ class LocalExplicit:
     topology : the MACS structure.
     max_iter : iteration cap of the ``while_loop`` runner.
     tol_primal, tol_dual : eps_r and eps_s of eq.Convergence (squared norms).
+    dual_residual : ``"slack"`` (default) tests ||Z_j^q - Z_j^(q-1)||^2 <= eps_s,
+        the slack's change in the constraints' own units; ``"paper"`` tests
+        ||s_j||^2 = ||rho_j (Z_j^q - Z_j^(q-1))||^2 <= eps_s as printed. The
+        printed form scales with rho_j, and eq.opt_ro gives rho_j ~ 1e-6 when
+        the weights are per Nm^2 (vehicle examples): a fixed eps_s is then met
+        while Z still moves by newtons, and the solver stops far from the
+        optimum. ``SolveResult.dual_residual`` reports the tested quantity.
 
     Use :meth:`solve` for deployment (early stop) and :meth:`solve_fixed` for
     differentiation (fixed iteration count under ``lax.scan``). Both are pure
@@ -268,8 +287,13 @@ class LocalExplicit:
     max_iter: int = 500
     tol_primal: float = 1e-6
     tol_dual: float = 1e-6
+    dual_residual: str = "slack"
 
     def __post_init__(self) -> None:
+        if self.dual_residual not in ("slack", "paper"):
+            raise ValueError(
+                f"dual_residual: expected 'slack' or 'paper', got {self.dual_residual!r}"
+            )
         self.topology.check_local_explicit()
 
     def _rows(self, j: int) -> np.ndarray:
@@ -345,57 +369,75 @@ class LocalExplicit:
         )
 
     # -- one iteration --------------------------------------------------------------
-    def step(self, setup: LocalSetup, state: ADMMState) -> ADMMState:
-        """One ADMM iteration: local, global and dual updates (alg:1 steps 5-9)."""
+    def _flat(self, state: ADMMState) -> _Flat:
+        return _Flat(
+            Z=state.Z.reshape(-1),
+            gamma=jnp.concatenate([g.reshape(-1) for g in state.gamma]),
+            U=jnp.concatenate([u.reshape(-1) for u in state.U]),
+            iteration=state.iteration,
+            primal=state.primal,
+            dual=state.dual,
+        )
+
+    def _unflat(self, flat: _Flat) -> ADMMState:
         T = self.topology
-        N = T.horizon
         lay = _layout(T)
+        return ADMMState(
+            U=_split(flat.U, lay.u_sizes, T.horizon),
+            Z=flat.Z.reshape(T.horizon, T.n_c),
+            gamma=_split(flat.gamma, lay.r_sizes, T.horizon),
+            iteration=flat.iteration,
+            primal=flat.primal,
+            dual=flat.dual,
+        )
+
+    def _step_flat(self, setup: LocalSetup, st: _Flat) -> _Flat:
+        lay = _layout(self.topology)
         rho = setup.rho_rows
-        gamma = jnp.concatenate([g.reshape(-1) for g in state.gamma])
-        Zs_old = state.Z.reshape(-1)[lay.gather]
-        w = rho * (Zs_old - setup.b) + gamma
+        Zs_old = st.Z[lay.gather]
+        w = rho * (Zs_old - setup.b) + st.gamma
         U = -(setup.KE + setup.KA @ w)  # eq.F3_primal, all objectives at once
         AU = setup.Abar @ U
-        v = -AU - gamma / rho + setup.b
+        v = -AU - st.gamma / rho + setup.b
         padded = jnp.concatenate([rho * v, jnp.zeros((1,), v.dtype)])
         num = padded[lay.scatter].sum(axis=1)  # sum_j rho_j v_jc per slack
         Z = jnp.maximum(num * setup.inv_den, 0.0)  # eq.F3_dual, rho-weighted (NOTES 14)
         Zs = Z[lay.gather]
         r = AU - setup.b + Zs
-        s = rho * (Zs - Zs_old)
-        gamma = gamma + rho * r  # eq.F3_multiplier
-        norms = jnp.asarray(lay.segment, r.dtype) @ jnp.stack([r * r, s * s], axis=1)
-        return ADMMState(
-            U=_split(U, lay.u_sizes, N),
-            Z=Z.reshape(N, T.n_c),
-            gamma=_split(gamma, lay.r_sizes, N),
-            iteration=state.iteration + 1,
-            primal=norms[:, 0],
-            dual=norms[:, 1],
-        )
+        dz = Zs - Zs_old
+        gamma = st.gamma + rho * r  # eq.F3_multiplier
+        if self.dual_residual == "paper":
+            dz = rho * dz  # s_j = rho_j (Z_j - Z_j_prev), eq.Convergence
+        norms = jnp.asarray(lay.segment, r.dtype) @ jnp.stack([r * r, dz * dz], axis=1)
+        return _Flat(Z, gamma, U, st.iteration + 1, norms[:, 0], norms[:, 1])
+
+    def step(self, setup: LocalSetup, state: ADMMState) -> ADMMState:
+        """One ADMM iteration: local, global and dual updates (alg:1 steps 5-9)."""
+        return self._unflat(self._step_flat(setup, self._flat(state)))
 
     def converged(self, state: ADMMState) -> Any:
-        """eq.Convergence for every objective."""
+        """eq.Convergence for every objective (see ``dual_residual``)."""
         return jnp.all((state.primal <= self.tol_primal) & (state.dual <= self.tol_dual))
 
     # -- runners ---------------------------------------------------------------------
     def run(self, setup: LocalSetup, state: ADMMState) -> ADMMState:
         """``lax.while_loop`` until eq.Convergence or ``max_iter`` (deployment)."""
 
-        def cond(st: ADMMState) -> Any:
+        def cond(st: _Flat) -> Any:
             finite = jnp.all(jnp.isfinite(st.primal) | (st.iteration == 0))
             return (st.iteration < self.max_iter) & ~self.converged(st) & finite
 
-        return jax.lax.while_loop(cond, lambda st: self.step(setup, st), state)
+        flat = jax.lax.while_loop(cond, lambda st: self._step_flat(setup, st), self._flat(state))
+        return self._unflat(flat)
 
     def run_fixed(self, setup: LocalSetup, state: ADMMState, iterations: int) -> ADMMState:
         """Exactly ``iterations`` iterations under ``lax.scan`` (differentiable)."""
 
-        def body(st: ADMMState, _: Any) -> tuple[ADMMState, None]:
-            return self.step(setup, st), None
+        def body(st: _Flat, _: Any) -> tuple[_Flat, None]:
+            return self._step_flat(setup, st), None
 
-        state, _ = jax.lax.scan(body, state, None, length=iterations)
-        return state
+        flat, _ = jax.lax.scan(body, self._flat(state), None, length=iterations)
+        return self._unflat(flat)
 
     def result(self, setup: LocalSetup, state: ADMMState) -> SolveResult:
         """Consensus inputs (average of the copies, projected on the bounds) and status."""

@@ -114,11 +114,16 @@ class IntegratedADMM:
     max_iter: int = 2000
     tol_primal: float = 1e-6
     tol_dual: float = 1e-6
+    dual_residual: str = "slack"
 
     @property
     def inner(self) -> LocalExplicit:
         return LocalExplicit(
-            merged_topology(self.topology), self.max_iter, self.tol_primal, self.tol_dual
+            merged_topology(self.topology),
+            self.max_iter,
+            self.tol_primal,
+            self.tol_dual,
+            self.dual_residual,
         )
 
     def solve(self, data: ProblemData, rho: Any = None, warm: Any = None) -> SolveResult:

@@ -137,7 +137,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     import jax.numpy as jnp
 
     from .manoeuvres import SCENARIOS
-    from .simulation import config_for, replay_timing, simulate
+    from .simulation import config_for, replay_timing, simulate, with_settings
 
     if args.scenario not in SCENARIOS:
         print(
@@ -153,7 +153,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             disabled=tuple(args.disable or ()),
             warm_start=not args.cold_start,
             shadow=not args.no_shadow,
+            tol_primal=args.tol_primal,
+            tol_dual=args.tol_dual,
+            max_iter=args.max_iter,
         )
+        if args.set:
+            cfg = with_settings(cfg, **_parse_settings(args.set, cfg.settings))
     except ValueError as exc:
         print(f"ampc: error: {exc}", file=sys.stderr)
         return 2
@@ -185,6 +190,23 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     for p in figs:
         print(f"figure {p}")
     return 0
+
+
+def _parse_settings(items: list[str], settings: Any) -> dict[str, Any]:
+    """``--set horizon=2 --set q_yrt=1e4`` -> fields of the example's settings."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or key not in settings._fields:
+            raise ValueError(
+                f"--set {item}: expected FIELD=VALUE with FIELD one of {list(settings._fields)}"
+            )
+        kind = type(getattr(settings, key))
+        try:
+            out[key] = (value.lower() in ("1", "true", "yes")) if kind is bool else kind(value)
+        except ValueError:
+            raise ValueError(f"--set {item}: {value!r} is not a valid {kind.__name__}") from None
+    return out
 
 
 def _summary(m: dict[str, Any]) -> None:
@@ -283,6 +305,15 @@ def add_cli_commands(sub: Any) -> None:
     p.add_argument("--mu", type=float, default=None, help="road friction (default: scenario's)")
     p.add_argument("--duration", type=float, default=None, help="simulated seconds")
     p.add_argument("--cold-start", action="store_true", help="cold start every step (paper)")
+    p.add_argument("--tol-primal", type=float, default=None, help="eps_r (squared, Nm^2)")
+    p.add_argument("--tol-dual", type=float, default=None, help="eps_s (squared)")
+    p.add_argument("--max-iter", type=int, default=None, help="controller iteration cap")
+    p.add_argument(
+        "--set",
+        action="append",
+        metavar="FIELD=VALUE",
+        help="override a field of the example's settings (e.g. horizon=2, q_yrt=1e4)",
+    )
     p.add_argument("--no-shadow", action="store_true", help="skip the integrated shadow")
     p.add_argument("--no-timing", action="store_true", help="skip the r_time replay")
     p.add_argument("--repeats", type=int, default=3, help="timing repeats per step")

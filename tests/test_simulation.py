@@ -155,3 +155,19 @@ def test_float32_closed_loop():
     res = simulate("stability_launch_brake", cfg, duration=1.0, dtype=jnp.float32)
     assert res.log.v_x.dtype == np.float32
     assert np.all(np.isfinite(res.log.torques))
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_walkthrough_notebook_executes():
+    nbformat = pytest.importorskip("nbformat")
+    nbclient = pytest.importorskip("nbclient")
+    from pathlib import Path
+
+    path = Path(__file__).parents[1] / "notebooks" / "cruise_control_walkthrough.ipynb"
+    nb = nbformat.read(path, as_version=4)
+    nbclient.NotebookClient(nb, timeout=240, kernel_name="python3").execute(cwd=str(path.parent))
+    text = "".join(
+        o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
+    )
+    assert "e_sub_p95" in text and "yaw_rms_focus" in text
