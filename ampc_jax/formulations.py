@@ -222,13 +222,9 @@ def optimal_rho(H: Any, Ain: Any, horizon: int, rank: int | None = None) -> Any:
       the known rank replaces a numerical threshold.
     """
     n = H.shape[0]
-    nu = n // horizon
     AtA = Ain.T @ Ain
     if rank is None:
-        La = jnp.linalg.cholesky(AtA)
-        Li = jsl.solve_triangular(La, jnp.eye(nu, dtype=H.dtype), lower=True)
-        Hb = H.reshape(horizon, nu, horizon, nu)
-        G = jnp.einsum("ab,kbld,cd->kalc", Li, Hb, Li).reshape(n, n)
+        G = _scaled_hessian(H, Ain, horizon)
         mu = jnp.linalg.eigvalsh(0.5 * (G + G.T))
         mu_min = jnp.maximum(mu[0], jnp.finfo(H.dtype).eps * mu[-1])
         return jnp.sqrt(mu_min * mu[-1])
@@ -239,6 +235,35 @@ def optimal_rho(H: Any, Ain: Any, horizon: int, rank: int | None = None) -> Any:
     lam = jnp.linalg.eigvalsh(0.5 * (G + G.T))
     nonzero = horizon * rank
     return 1.0 / jnp.sqrt(lam[n - nonzero] * lam[-1])
+
+
+def _scaled_hessian(H: Any, Ain: Any, horizon: int) -> Any:
+    """L^-1 H L^-T with L = I (x) chol(A_in' A_in) (see :func:`optimal_rho`)."""
+    n = H.shape[0]
+    nu = n // horizon
+    La = jnp.linalg.cholesky(Ain.T @ Ain)
+    Li = jsl.solve_triangular(La, jnp.eye(nu, dtype=H.dtype), lower=True)
+    Hb = H.reshape(horizon, nu, horizon, nu)
+    return jnp.einsum("ab,kbld,cd->kalc", Li, Hb, Li).reshape(n, n)
+
+
+def _pad_identity(K: Any, n: int) -> Any:
+    p = n - K.shape[0]
+    if p == 0:
+        return K
+    return jnp.pad(K, ((0, p), (0, p))) + jnp.diag(
+        jnp.concatenate([jnp.zeros(K.shape[0], K.dtype), jnp.ones(p, K.dtype)])
+    )
+
+
+def _pad_mean(G: Any, n: int) -> Any:
+    p = n - G.shape[0]
+    if p == 0:
+        return G
+    mean = jnp.trace(G) / G.shape[0]
+    return jnp.pad(G, ((0, p), (0, p))) + jnp.diag(
+        jnp.concatenate([jnp.zeros(G.shape[0], G.dtype), jnp.full((p,), mean, G.dtype)])
+    )
 
 
 def shift_state(state: ADMMState) -> ADMMState:
@@ -314,24 +339,30 @@ class LocalExplicit:
             Ains.append(data.Ain[np.ix_(rows, cols)])
             bins.append(data.bin[:, rows])
         if rho is None:
-            rhos = []
-            for j in range(T.n_objectives):
-                full = T.group_rank[j] == len(T.group_columns(j))
-                r = None if full else T.group_rank[j]
-                rhos.append(optimal_rho(H[j], Ains[j], T.horizon, r))
-            rho_arr = jnp.stack(rhos)
+            rho_arr = self._optimal_rhos(H, Ains)
         else:
             rho_arr = jnp.broadcast_to(jnp.asarray(rho, H[0].dtype), (T.n_objectives,))
-        KE, KA, Abars = [], [], []
+        # Factorise every K_j = H_j + rho_j Abar_j'Abar_j in one batched call
+        # (padded to a common size with an identity block and zero right-hand
+        # sides, which leaves each K_j^-1 [E_j, Abar_j'] unchanged).
+        Abars, Ks, rhss = [], [], []
         for j in range(T.n_objectives):
-            eye = jnp.eye(T.horizon, dtype=H[j].dtype)
-            Abar = jnp.kron(eye, Ains[j])
-            L = jnp.linalg.cholesky(H[j] + rho_arr[j] * Abar.T @ Abar)
-            rhs = jnp.concatenate([E[j][:, None], Abar.T], axis=1)
-            sol = jsl.cho_solve((L, True), rhs)
-            KE.append(sol[:, 0])
-            KA.append(sol[:, 1:])
+            Abar = jnp.kron(jnp.eye(T.horizon, dtype=H[j].dtype), Ains[j])
             Abars.append(Abar)
+            Ks.append(H[j] + rho_arr[j] * Abar.T @ Abar)
+            rhss.append(jnp.concatenate([E[j][:, None], Abar.T], axis=1))
+        n_max = max(k.shape[0] for k in Ks)
+        c_max = max(r.shape[1] for r in rhss)
+        K_b = jnp.stack([_pad_identity(k, n_max) for k in Ks])
+        rhs_b = jnp.stack(
+            [jnp.pad(r, ((0, n_max - r.shape[0]), (0, c_max - r.shape[1]))) for r in rhss]
+        )
+        sol_b = jsl.cho_solve((jnp.linalg.cholesky(K_b), True), rhs_b)
+        KE, KA = [], []
+        for j in range(T.n_objectives):
+            n_j, c_j = rhss[j].shape
+            KE.append(sol_b[j, :n_j, 0])
+            KA.append(sol_b[j, :n_j, 1:c_j])
         lay = _layout(T)
         seg = jnp.asarray(lay.segment, rho_arr.dtype)
         rho_rows = rho_arr @ seg
@@ -351,6 +382,46 @@ class LocalExplicit:
             lb=data.lb,
             ub=data.ub,
         )
+
+    def _optimal_rhos(self, H: tuple, Ains: tuple) -> Any:
+        """eq.opt_ro for every objective, eigenvalues in one batched call.
+
+        For an objective with only box rows (the common case) A_in,j'A_in,j is
+        diagonal, so L^-1 H L^-T of :func:`optimal_rho` is a diagonal scaling
+        of H_j. The matrices are padded to a common size with their mean
+        eigenvalue (trace / n), which lies between the extreme eigenvalues and
+        so leaves mu_min and mu_max unchanged.
+        """
+        T = self.topology
+        nb = len(T.box_rows)
+        Gs, general = [], {}
+        for j in range(T.n_objectives):
+            full = T.group_rank[j] == len(T.group_columns(j))
+            if not full:
+                general[j] = optimal_rho(H[j], Ains[j], T.horizon, T.group_rank[j])
+                Gs.append(None)
+            elif all(c < nb for c in T.group_rows(j)):
+                dh = jnp.tile(1.0 / jnp.sqrt(jnp.sum(Ains[j] ** 2, axis=0)), T.horizon)
+                Gs.append(H[j] * dh[:, None] * dh[None, :])
+            else:
+                Gs.append(_scaled_hessian(H[j], Ains[j], T.horizon))
+        sizes = [g.shape[0] for g in Gs if g is not None]
+        if sizes:
+            n_max = max(sizes)
+            G_b = jnp.stack(
+                [_pad_mean(0.5 * (g + g.T), n_max) for g in Gs if g is not None]
+            )
+            mu = jnp.linalg.eigvalsh(G_b)
+            eps = jnp.finfo(mu.dtype).eps
+            rho_sym = jnp.sqrt(jnp.maximum(mu[:, 0], eps * mu[:, -1]) * mu[:, -1])
+        out, k = [], 0
+        for j in range(T.n_objectives):
+            if Gs[j] is None:
+                out.append(general[j])
+            else:
+                out.append(rho_sym[k])
+                k += 1
+        return jnp.stack(out)
 
     def init(self, setup: LocalSetup, warm: ADMMState | None = None) -> ADMMState:
         """Cold start (zeros, as alg:1) or a warm start state (see :func:`shift_state`)."""

@@ -23,8 +23,8 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple
 
-import jax
 import jax.numpy as jnp
+import numpy as np
 
 __all__ = ["Prediction", "matrix_powers", "prediction_matrices", "quadratic_cost"]
 
@@ -43,13 +43,12 @@ class Prediction(NamedTuple):
 def matrix_powers(A: Any, n: int) -> Any:
     """(n + 1, n_x, n_x) stack of A^0 .. A^n."""
 
-    def body(P: Any, _: Any) -> tuple[Any, Any]:
-        nxt = A @ P
-        return nxt, nxt
-
-    eye = jnp.eye(A.shape[0], dtype=A.dtype)
-    _, rest = jax.lax.scan(body, eye, None, length=n)
-    return jnp.concatenate([eye[None], rest], axis=0)
+    # Unrolled (n is a static horizon): a loop of tiny matrix products costs
+    # more in loop overhead than in arithmetic on XLA:CPU.
+    out = [jnp.eye(A.shape[0], dtype=A.dtype)]
+    for _ in range(n):
+        out.append(A @ out[-1])
+    return jnp.stack(out)
 
 
 def _block_toeplitz(blocks: Any, horizon: int) -> Any:
@@ -57,11 +56,11 @@ def _block_toeplitz(blocks: Any, horizon: int) -> Any:
 
     blocks : (N_p, p, q) -> (N_p * p, N_p * q).
     """
-    k = jnp.arange(horizon)
-    d = k[:, None] - k[None, :]
-    full = jnp.where((d >= 0)[:, :, None, None], blocks[jnp.clip(d, 0)], 0.0)
+    k = np.arange(horizon)
+    sel = (k[:, None, None] - k[None, :, None] == k[None, None, :]).astype(np.float64)
+    full = jnp.einsum("kld,dpq->kplq", jnp.asarray(sel, blocks.dtype), blocks)
     p, q = blocks.shape[1:]
-    return full.transpose(0, 2, 1, 3).reshape(horizon * p, horizon * q)
+    return full.reshape(horizon * p, horizon * q)
 
 
 def prediction_matrices(A: Any, B: Any, C: Any, horizon: int) -> Prediction:
