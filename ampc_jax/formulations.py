@@ -139,18 +139,6 @@ def _layout(topology: Topology) -> _Layout:
     return _Layout(gather, scatter, segment, u_sizes, r_sizes)
 
 
-def _block_diag(blocks: list[Any]) -> Any:
-    rows = sum(b.shape[0] for b in blocks)
-    cols = sum(b.shape[1] for b in blocks)
-    out = jnp.zeros((rows, cols), blocks[0].dtype)
-    r = c = 0
-    for blk in blocks:
-        out = out.at[r : r + blk.shape[0], c : c + blk.shape[1]].set(blk)
-        r += blk.shape[0]
-        c += blk.shape[1]
-    return out
-
-
 class _Flat(NamedTuple):
     """The iterate stacked over objectives (the loop carry)."""
 
@@ -374,8 +362,8 @@ class LocalExplicit:
             bin=tuple(bins),
             rho=rho_arr,
             KE=jnp.concatenate(KE),
-            KA=_block_diag(KA),
-            Abar=_block_diag(Abars),
+            KA=jsl.block_diag(*KA),
+            Abar=jsl.block_diag(*Abars),
             b=jnp.concatenate([x.reshape(-1) for x in bins]),
             rho_rows=rho_rows,
             inv_den=1.0 / den,

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import jax.numpy as jnp
+import jax.scipy.linalg as jsl
 import numpy as np
 import scipy.sparse as sp
 
@@ -80,13 +81,7 @@ def _merged_rank(topology: Topology) -> int:
 
 def merged_data(data: ProblemData) -> ProblemData:
     """Stack the objectives' C_j, block-diagonal Q_j and references into one objective."""
-    Qs = data.Q
-    n = sum(q.shape[0] for q in Qs)
-    Q = jnp.zeros((n, n), Qs[0].dtype)
-    o = 0
-    for q in Qs:
-        Q = Q.at[o : o + q.shape[0], o : o + q.shape[0]].set(q)
-        o += q.shape[0]
+    Q = jsl.block_diag(*data.Q)
     return data._replace(
         C=(jnp.concatenate(data.C, axis=0),),
         Q=(Q,),

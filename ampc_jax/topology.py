@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import jax.numpy as jnp
+import jax.scipy.linalg as jsl
 import numpy as np
 
 __all__ = [
@@ -835,7 +836,7 @@ def make_data(
     if isinstance(R, (list, tuple)):
         blocks = [arr(r) for r in R]
         blocks = [jnp.diag(r) if r.ndim == 1 else r.reshape(r.shape[-1], -1) for r in blocks]
-        R = _block_diag(blocks)
+        R = jsl.block_diag(*blocks)
     if isinstance(lb, (list, tuple)):
         lb = jnp.concatenate([jnp.atleast_1d(arr(x)) for x in lb], axis=-1)
     if isinstance(ub, (list, tuple)):
@@ -877,13 +878,3 @@ def make_data(
         lb=lb,
         ub=ub,
     )
-
-
-def _block_diag(blocks: Sequence[Any]) -> Any:
-    n = sum(b.shape[0] for b in blocks)
-    out = jnp.zeros((n, n), blocks[0].dtype)
-    o = 0
-    for b in blocks:
-        out = out.at[o : o + b.shape[0], o : o + b.shape[0]].set(b)
-        o += b.shape[0]
-    return out
