@@ -64,7 +64,7 @@ def _positive(kind: type) -> Any:
     return parse
 
 
-def _warm_state(path: str, solver: Any, setup: Any) -> Any:
+def _warm_state(path: str, solver: Any, dt: Any) -> Any:
     """Read a previous ``--json`` output's ``warm_state`` and shift it one step."""
     import jax.numpy as jnp
 
@@ -81,7 +81,6 @@ def _warm_state(path: str, solver: Any, setup: Any) -> Any:
             f"previous 'ampc solve --formulation local_explicit'"
         )
     T = solver.topology
-    dt = setup.rho.dtype
     try:
         U = tuple(jnp.asarray(ws["U"][j], dt).reshape(T.horizon, -1) for j in range(T.n_objectives))
         gamma = tuple(
@@ -93,9 +92,9 @@ def _warm_state(path: str, solver: Any, setup: Any) -> Any:
             f"--warm-start {path}: warm_state does not match this problem ({exc})"
         ) from exc
     for j in range(T.n_objectives):
-        if U[j].shape != (T.horizon, setup.Ain[j].shape[1]) or gamma[j].shape != (
+        if U[j].shape != (T.horizon, len(T.group_columns(j))) or gamma[j].shape != (
             T.horizon,
-            setup.Ain[j].shape[0],
+            len(T.group_rows(j)),
         ):
             raise ValueError(f"--warm-start {path}: warm_state does not match this problem's sizes")
     state = ADMMState(
@@ -147,7 +146,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
             rho = None if args.rho is None else jnp.full((T.n_objectives,), args.rho, dtype)
             warm = None
             if args.warm_start:
-                warm = _warm_state(args.warm_start, solver, solver.setup(data, rho))
+                warm = _warm_state(args.warm_start, solver, dtype)
             fn = jax.jit(solver.solve)
             t0 = time.perf_counter()
             compiled = fn.lower(data, rho, warm).compile()
@@ -276,6 +275,9 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args))
     except KeyboardInterrupt:
         return _fail("interrupted", 130)
+    except BrokenPipeError:  # output piped into e.g. `head`: not an error of ours
+        sys.stdout = None
+        return 0
 
 
 if __name__ == "__main__":

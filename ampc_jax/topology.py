@@ -568,6 +568,7 @@ class Topology:
     group_rank : per objective, rank of its per-step rows A_in,j (restricted to U_j);
         full column rank lets eq.opt_ro skip any eigenvalue threshold (see
         ``formulations.optimal_rho``).
+    total_rank : rank of all per-step rows A_in (the undecomposed problem's).
     """
 
     n_x: int
@@ -582,6 +583,7 @@ class Topology:
     covered_inputs: tuple[bool, ...] = ()
     pinned_rank: tuple[int, ...] = ()
     group_rank: tuple[int, ...] = ()
+    total_rank: int = 0
 
     @classmethod
     def build(
@@ -654,7 +656,8 @@ class Topology:
         for j in range(topo.n_objectives):
             Aj = Ain[np.ix_(topo.group_rows(j), topo.group_columns(j))]
             full.append(int(np.linalg.matrix_rank(Aj)) if Aj.size else 0)
-        return replace(topo, group_rank=tuple(full))
+        total = int(np.linalg.matrix_rank(Ain)) if Ain.size else 0
+        return replace(topo, group_rank=tuple(full), total_rank=total)
 
     # -- derived sizes ----------------------------------------------------------
     @property
