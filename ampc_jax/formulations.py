@@ -54,7 +54,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
 
-from .prediction import prediction_matrices, quadratic_cost
+from .prediction import matrix_powers
 from .results import SolveResult
 from .topology import ProblemData, Topology
 
@@ -71,91 +71,89 @@ __all__ = [
 class LocalSetup(NamedTuple):
     """Per-control-step data of Local Explicit, built and factorised once.
 
-    Tuples run over objectives j; n_j = N_p n_u,j and m_j = N_p n_cj (rows of
-    Abar_j). The iteration works on the objectives stacked: n = sum n_j,
-    m = sum m_j.
+    The objectives are stacked on a leading axis j and padded to common sizes:
+    U inputs per step (the largest n_u,j) and C constraint rows per step (the
+    largest n_c,j); n = N_p U. Padded inputs carry an identity block in K_j and
+    zero columns in A_in,j, padded rows zero coefficients and zero right-hand
+    side, so neither ever moves (the unpadded iterates are exactly those of
+    the per-objective algorithm).
 
-    H : tuple of (n_j, n_j) H_j.   E : tuple of (n_j,) E_j.
-    Ain : tuple of (n_cj, n_uj) per-step rows A_in,j (Abar_j = I_{N_p} (x) A_in,j).
-    bin : tuple of (N_p, n_cj) bbar_j, step by step.
-    rho : (n_obj,) rho_j.
-    KE : (n,) stacked K_j^-1 E_j, K_j = H_j + rho_j Abar_j' Abar_j (factorised once).
-    KA : (n, m) block-diagonal K_j^-1 Abar_j'.
-    Abar : (m, n) block-diagonal Abar_j.
-    b : (m,) stacked bbar_j.   rho_rows : (m,) rho_j of each stacked row.
-    inv_den : (N_p n_c,) 1 / sum of rho_j over the objectives carrying each slack.
+    H : (J, n, n) H_j (padded).   E : (J, n) E_j.
+    Ain : (J, C, U) per-step rows A_in,j (Abar_j = I_{N_p} (x) A_in,j).
+    b : (J, N_p, C) bbar_j, step by step.
+    rho : (J,) rho_j.
+    Kinv : (J, n, n) K_j^-1, K_j = H_j + rho_j Abar_j' Abar_j (factorised once).
+    KE : (J, n) K_j^-1 E_j.
+    inv_den : (n_c,) 1 / sum of rho_j over the objectives carrying each slack row.
     lb, ub : (N_p, n_u) bounds, to project the consensus output.
     """
 
-    H: tuple
-    E: tuple
-    Ain: tuple
-    bin: tuple
-    rho: Any
-    KE: Any
-    KA: Any
-    Abar: Any
+    H: Any
+    E: Any
+    Ain: Any
     b: Any
-    rho_rows: Any
+    rho: Any
+    Kinv: Any
+    KE: Any
     inv_den: Any
     lb: Any
     ub: Any
 
 
 class _Layout(NamedTuple):
-    """Static index maps between Z (N_p n_c,) and the stacked rows (m,)."""
+    """Static index maps of the padded, objective-stacked layout."""
 
-    gather: np.ndarray  # (m,) index into Z.ravel() of each stacked row
-    scatter: np.ndarray  # (N_p n_c, max m_(c)) positions in the padded (m+1,) row vector
-    segment: np.ndarray  # (n_obj, m) 0/1: which objective a stacked row belongs to
-    u_sizes: tuple  # n_j
-    r_sizes: tuple  # m_j
+    cols: np.ndarray  # (J, U) input index of each padded column; n_u for padding
+    umask: np.ndarray  # (J, U) 1 for a real input
+    rows: np.ndarray  # (J, C) constraint row of each padded row; n_c for padding
+    S: np.ndarray  # (J, C, n_c) 0/1 selection: padded row -> slack row
+    P: np.ndarray  # (J, U, n_u) 0/1 selection: padded column -> input
+    scale: np.ndarray  # (J, U) 1 / m_(i) of each column's agent (0 for padding)
+    u_sizes: tuple  # n_u,j
+    c_sizes: tuple  # n_c,j
+    y_sizes: tuple  # n_y,j
+    full: tuple  # A_in,j has full column rank (eq.opt_ro without a threshold)
 
 
 @functools.lru_cache(maxsize=64)
 def _layout(topology: Topology) -> _Layout:
     T = topology
-    N, nc = T.horizon, T.n_c
-    gather, owner = [], []
-    for j in range(T.n_objectives):
-        rows = T.group_rows(j)
-        for k in range(N):
-            for c in rows:
-                gather.append(k * nc + c)
-                owner.append(j)
-    gather = np.asarray(gather, np.int32)
-    m = gather.size
-    lists: list[list[int]] = [[] for _ in range(N * nc)]
-    for pos, e in enumerate(gather):
-        lists[e].append(pos)
-    width = max(1, max(len(x) for x in lists))
-    scatter = np.full((N * nc, width), m, np.int32)  # index m = the appended zero
-    for e, x in enumerate(lists):
-        scatter[e, : len(x)] = x
-    segment = np.zeros((T.n_objectives, m))
-    segment[np.asarray(owner), np.arange(m)] = 1.0
-    u_sizes = tuple(N * len(T.group_columns(j)) for j in range(T.n_objectives))
-    r_sizes = tuple(N * len(T.group_rows(j)) for j in range(T.n_objectives))
-    return _Layout(gather, scatter, segment, u_sizes, r_sizes)
+    J = T.n_objectives
+    u_sizes = tuple(len(T.group_columns(j)) for j in range(J))
+    c_sizes = tuple(len(T.group_rows(j)) for j in range(J))
+    U, C = max(u_sizes), max(1, max(c_sizes))
+    cols = np.full((J, U), T.n_u, np.int32)
+    rows = np.full((J, C), T.n_c, np.int32)
+    S = np.zeros((J, C, T.n_c))
+    P = np.zeros((J, U, T.n_u))
+    scale = np.zeros((J, U))
+    mult = T.multiplicity
+    for j in range(J):
+        cj = T.group_columns(j)
+        cols[j, : len(cj)] = cj
+        for a, k in enumerate(cj):
+            P[j, a, k] = 1.0
+            scale[j, a] = 1.0 / mult[T.agent_of_input(k)]
+        rj = T.group_rows(j)
+        rows[j, : len(rj)] = rj
+        for a, c in enumerate(rj):
+            S[j, a, c] = 1.0
+    umask = (cols < T.n_u).astype(np.float64)
+    full = tuple(T.group_rank[j] == u_sizes[j] for j in range(J))
+    return _Layout(
+        cols, umask, rows, S, P, scale, u_sizes, c_sizes, tuple(T.output_sizes), full
+    )
 
 
 class _Flat(NamedTuple):
-    """The iterate stacked over objectives (the loop carry)."""
+    """The iterate in the padded stacked layout (the loop carry)."""
 
-    Z: Any  # (N_p n_c,)
-    gamma: Any  # (m,)
-    U: Any  # (n,)
+    Z: Any  # (N_p, n_c)
+    gamma: Any  # (J, N_p, C)
+    U: Any  # (J, n)
     iteration: Any
-    primal: Any
-    dual: Any
-
-
-def _split(x: Any, sizes: tuple, horizon: int) -> tuple:
-    out, o = [], 0
-    for n in sizes:
-        out.append(x[o : o + n].reshape(horizon, -1))
-        o += n
-    return tuple(out)
+    primal: Any  # (J,)
+    dual: Any  # (J,)
 
 
 class ADMMState(NamedTuple):
@@ -176,24 +174,70 @@ class ADMMState(NamedTuple):
     dual: Any
 
 
+def _eye_like(n: int, dtype: Any, batch: int) -> Any:
+    return jnp.broadcast_to(jnp.eye(n, dtype=dtype), (batch, n, n))
+
+
+def _padded_costs(topology: Topology, data: ProblemData) -> tuple[Any, Any]:
+    """(H, E) of every objective in the padded layout, all objectives at once.
+
+    H : (J, N_p U, N_p U) with an identity block on padded inputs; E : (J, N_p U).
+    Same formulas as :func:`~ampc_jax.prediction.quadratic_cost` (eq.F3_primal_1,
+    NOTES items 8, 18, 19): H_j = 2 (Y_u,j' Qbar_j Y_u,j + I (x) R_(j) / m),
+    E_j = 2 Y_u,j' Qbar_j (Y_x,j X^(0) + Y_w,j Wbar - ref_j). The matrix powers
+    and the free response are shared by all objectives.
+    """
+    T = topology
+    lay = _layout(T)
+    J, U = lay.cols.shape
+    N = T.horizon
+    dt = data.A.dtype
+    Y = max(lay.y_sizes)
+    Cp = jnp.stack([jnp.pad(c, ((0, Y - c.shape[0]), (0, 0))) for c in data.C])
+    Qp = jnp.stack(
+        [jnp.pad(q, ((0, Y - q.shape[0]), (0, Y - q.shape[0]))) for q in data.Q]
+    )
+    refp = jnp.stack([jnp.pad(r, ((0, 0), (0, Y - r.shape[1]))) for r in data.ref])
+    Bx = jnp.concatenate([data.B, jnp.zeros((T.n_x, 1), dt)], axis=1)
+    Bj = jnp.moveaxis(Bx[:, lay.cols], 1, 0)  # (J, n_x, U)
+    Rx = jnp.pad(data.R, ((0, 1), (0, 1)))
+    Rj = Rx[lay.cols[:, :, None], lay.cols[:, None, :]] * jnp.asarray(lay.scale, dt)[:, :, None]
+    Pw = matrix_powers(data.A, N)  # A^0..A^N
+    k = np.arange(N)
+    sel = jnp.asarray((k[:, None, None] - k[None, :, None] == k[None, None, :]), dt)
+    # free response x^(k+1) = A^(k+1) x0 + sum_{l<=k} A^(k-l) w_l
+    xf = Pw[1:] @ data.x0 + jnp.einsum("kld,dxz,lz->kx", sel, Pw[:N], data.w)
+    free = jnp.einsum("jyx,kx->jky", Cp, xf) - refp  # (J, N, Y)
+    CPB = jnp.einsum("jyx,kxz,jzu->jkyu", Cp, Pw[:N], Bj)  # C_j A^k B_j
+    Yu = jnp.einsum("kld,jdyu->jkylu", sel, CPB).reshape(J, N * Y, N * U)
+    QYu = jnp.einsum("jyz,jkzm->jkym", Qp, Yu.reshape(J, N, Y, N * U)).reshape(J, N * Y, N * U)
+    Rbar = jnp.einsum("kl,jab->jkalb", jnp.eye(N, dtype=dt), Rj).reshape(J, N * U, N * U)
+    H = 2.0 * (jnp.einsum("jam,jan->jmn", Yu, QYu) + Rbar)
+    H = 0.5 * (H + jnp.swapaxes(H, 1, 2))
+    pad = jnp.asarray(np.tile(1.0 - lay.umask, (1, N)), dt)  # (J, n)
+    H = H + pad[:, :, None] * jnp.eye(N * U, dtype=dt)
+    E = 2.0 * jnp.einsum("jam,ja->jm", QYu, free.reshape(J, N * Y))
+    return H, E
+
+
+def _unpad_matrix(M: Any, n_u: int, U: int, horizon: int) -> Any:
+    M = M.reshape(horizon, U, horizon, U)[:, :n_u, :, :n_u]
+    return M.reshape(horizon * n_u, horizon * n_u)
+
+
 def local_costs(topology: Topology, data: ProblemData) -> tuple[tuple, tuple]:
     """(H_j, E_j) for every objective (eq.F3_primal_1, NOTES items 8, 18, 19)."""
-    T = topology
-    mult = T.multiplicity
-    H, E = [], []
-    for j in range(T.n_objectives):
-        cols = np.asarray(T.group_columns(j))
-        scale = np.concatenate([np.full(T.agent_sizes[i], 1.0 / mult[i]) for i in T.groups[j]])
-        R_j = data.R[np.ix_(cols, cols)] * jnp.asarray(scale, data.R.dtype)[:, None]
-        pred = prediction_matrices(data.A, data.B[:, cols], data.C[j], T.horizon)
-        Hj, Ej = quadratic_cost(pred, data.Q[j], R_j, data.x0, data.w, data.ref[j])
-        H.append(Hj)
-        E.append(Ej)
-    return tuple(H), tuple(E)
+    lay = _layout(topology)
+    U = lay.cols.shape[1]
+    N = topology.horizon
+    H, E = _padded_costs(topology, data)
+    Hs = tuple(_unpad_matrix(H[j], n, U, N) for j, n in enumerate(lay.u_sizes))
+    Es = tuple(E[j].reshape(N, U)[:, :n].reshape(-1) for j, n in enumerate(lay.u_sizes))
+    return Hs, Es
 
 
 def optimal_rho(H: Any, Ain: Any, horizon: int, rank: int | None = None) -> Any:
-    """eq.opt_ro: rho* = 1 / sqrt(lambda_1 lambda_n) of M = Abar H^-1 Abar'.
+    """eq.opt_ro, exactly: rho* = 1 / sqrt(lambda_1 lambda_n) of M = Abar H^-1 Abar'.
 
     lambda_1 and lambda_n are the smallest non-zero and the largest eigenvalue
     of M. The non-zero eigenvalues of M are those of H^-1 Abar'Abar (same
@@ -202,12 +246,16 @@ def optimal_rho(H: Any, Ain: Any, horizon: int, rank: int | None = None) -> Any:
     * Full column rank A_in,j (every bounded input; ``rank is None``): all of
       H^-1 Abar'Abar's eigenvalues are non-zero. With Abar'Abar = L L' (block
       diagonal, L = I (x) chol(A_in,j' A_in,j)) they are 1/mu for mu the
-      eigenvalues of L^-1 H L^-T, so rho* = sqrt(mu_min mu_max): no
+      eigenvalues of G = L^-1 H L^-T, so rho* = sqrt(mu_min mu_max): no
       threshold, so float32 does not pick rounding noise (jax-facts). For
       two-sided boxes this is sqrt(lambda_min(H) lambda_max(H)) / 2 (NOTES 16).
     * Otherwise ``rank`` = rank(A_in,j) per step gives the number of non-zero
       eigenvalues, N_p * rank, of L_H^-1 Abar'Abar L_H^-T (L_H = chol(H)):
       the known rank replaces a numerical threshold.
+
+    This is the exact (eigendecomposition) form, ``rho_method="eigh"`` of
+    :class:`LocalExplicit`; the default estimates mu_min and mu_max by power
+    iteration (:func:`_power_rho`), which is much cheaper on XLA:CPU.
     """
     n = H.shape[0]
     AtA = Ain.T @ Ain
@@ -226,32 +274,52 @@ def optimal_rho(H: Any, Ain: Any, horizon: int, rank: int | None = None) -> Any:
 
 
 def _scaled_hessian(H: Any, Ain: Any, horizon: int) -> Any:
-    """L^-1 H L^-T with L = I (x) chol(A_in' A_in) (see :func:`optimal_rho`)."""
-    n = H.shape[0]
+    """L^-1 H L^-T with L = I (x) chol(A_in' A_in) (see :func:`optimal_rho`).
+
+    Works on one (n, n) H or a batch (J, n, n) with (J, C, U) rows.
+    """
+    batched = H.ndim == 3
+    Hb = H if batched else H[None]
+    Ab = Ain if batched else Ain[None]
+    J, n = Hb.shape[0], Hb.shape[1]
     nu = n // horizon
-    La = jnp.linalg.cholesky(Ain.T @ Ain)
-    Li = jsl.solve_triangular(La, jnp.eye(nu, dtype=H.dtype), lower=True)
-    Hb = H.reshape(horizon, nu, horizon, nu)
-    return jnp.einsum("ab,kbld,cd->kalc", Li, Hb, Li).reshape(n, n)
+    AtA = jnp.einsum("jcu,jcv->juv", Ab, Ab)
+    La = jnp.linalg.cholesky(AtA)
+    Li = jsl.solve_triangular(La, _eye_like(nu, H.dtype, J), lower=True)
+    G = jnp.einsum("jab,jkblc,jdc->jkald", Li, Hb.reshape(J, horizon, nu, horizon, nu), Li)
+    G = G.reshape(J, n, n)
+    return G if batched else G[0]
 
 
-def _pad_identity(K: Any, n: int) -> Any:
-    p = n - K.shape[0]
-    if p == 0:
-        return K
-    return jnp.pad(K, ((0, p), (0, p))) + jnp.diag(
-        jnp.concatenate([jnp.zeros(K.shape[0], K.dtype), jnp.ones(p, K.dtype)])
-    )
+def _power_rho(G: Any, mask: Any, iterations: int) -> Any:
+    """eq.opt_ro with mu_min, mu_max of G estimated by power iteration.
 
+    G : (J, n, n) symmetric positive definite (padded entries decoupled), mask :
+    (J, n) 1 on real entries. mu_max is the Rayleigh quotient of G after
+    ``iterations`` steps of the power method on G, mu_min the inverse of the
+    one of G^-1 (explicit, from a Cholesky factor). Rayleigh quotients lie
+    inside the spectrum, so mu_max is under- and mu_min over-estimated; the
+    product's error is second order in the iterate's angle to the extreme
+    eigenvectors, and it is only a convergence-rate parameter (the solution
+    does not depend on it). Measured against the exact eigendecomposition
+    (tests/test_formulations.py): within a few percent.
+    """
+    J, n, _ = G.shape
+    dt = G.dtype
+    Ginv = jsl.cho_solve((jnp.linalg.cholesky(G), True), _eye_like(n, dt, J))
+    M = jnp.stack([G, Ginv], axis=1)  # (J, 2, n, n)
+    v0 = np.random.default_rng(12345).uniform(0.5, 1.5, n)
+    v = jnp.broadcast_to(jnp.asarray(v0, dt) * mask, (2, J, n)).transpose(1, 0, 2)
 
-def _pad_mean(G: Any, n: int) -> Any:
-    p = n - G.shape[0]
-    if p == 0:
-        return G
-    mean = jnp.trace(G) / G.shape[0]
-    return jnp.pad(G, ((0, p), (0, p))) + jnp.diag(
-        jnp.concatenate([jnp.zeros(G.shape[0], G.dtype), jnp.full((p,), mean, G.dtype)])
-    )
+    def body(_: Any, v: Any) -> Any:
+        v = jnp.einsum("jpab,jpb->jpa", M, v)
+        return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
+
+    v = jax.lax.fori_loop(0, iterations, body, v / jnp.sqrt(jnp.sum(v * v, -1, keepdims=True)))
+    rq = jnp.einsum("jpa,jpab,jpb->jp", v, M, v)
+    mu_max = rq[:, 0]
+    mu_min = jnp.maximum(1.0 / rq[:, 1], jnp.finfo(dt).eps * mu_max)
+    return jnp.sqrt(mu_min * mu_max)
 
 
 def shift_state(state: ADMMState) -> ADMMState:
@@ -290,6 +358,23 @@ class LocalExplicit:
         the weights are per Nm^2 (vehicle examples): a fixed eps_s is then met
         while Z still moves by newtons, and the solver stops far from the
         optimum. ``SolveResult.dual_residual`` reports the tested quantity.
+    rho_method : how eq.opt_ro's extreme eigenvalues are found when rho is not
+        given. ``"power"`` (default): power iteration on G_j and G_j^-1
+        (``rho_iterations`` steps, see :func:`_power_rho`); ``"eigh"``: the
+        exact eigendecomposition (:func:`optimal_rho`), several times slower on
+        XLA:CPU (LAPACK eigensolvers dominate a small step). Objectives whose
+        rows A_in,j are column-rank deficient always use the exact form.
+    rho_iterations : power-iteration steps of ``rho_method="power"``.
+    rho_scale : factor(s) on eq.opt_ro's rho_j (a float, or one per objective),
+        used when no rho is given. eq.opt_ro minimises a bound on the linear
+        convergence rate, not the iteration count; on the cruise example the
+        fewest iterations come at about (1, 0.1) x rho* (``bench/bench_rho.py``
+        sweeps it). Scaling rho* keeps it following the operating point.
+    relaxation : over-relaxation factor alpha of the global and dual steps
+        (Boyd et al. 2011, sec. 3.4.3): Abar_j U_j is replaced there by
+        alpha Abar_j U_j + (1 - alpha)(bbar_j - Z_j^(q-1)). 1.0 (default) is
+        the paper's iteration; 1.5 to 1.8 usually needs fewer iterations. The
+        stopping rule still tests the unrelaxed residual r_j.
 
     Use :meth:`solve` for deployment (early stop) and :meth:`solve_fixed` for
     differentiation (fixed iteration count under ``lax.scan``). Both are pure
@@ -301,12 +386,32 @@ class LocalExplicit:
     tol_primal: float = 1e-6
     tol_dual: float = 1e-6
     dual_residual: str = "slack"
+    rho_method: str = "power"
+    rho_iterations: int = 30
+    rho_scale: float | tuple = 1.0
+    relaxation: float = 1.0
 
     def __post_init__(self) -> None:
         if self.dual_residual not in ("slack", "paper"):
             raise ValueError(
                 f"dual_residual: expected 'slack' or 'paper', got {self.dual_residual!r}"
             )
+        if self.rho_method not in ("power", "eigh"):
+            raise ValueError(f"rho_method: expected 'power' or 'eigh', got {self.rho_method!r}")
+        if int(self.rho_iterations) < 1:
+            raise ValueError(f"rho_iterations: expected >= 1, got {self.rho_iterations}")
+        scale = np.atleast_1d(np.asarray(self.rho_scale, dtype=float))
+        if scale.size > 1:  # hashable (the solver is a static jit argument)
+            object.__setattr__(self, "rho_scale", tuple(float(x) for x in scale))
+        if scale.size not in (1, self.topology.n_objectives):
+            raise ValueError(
+                f"rho_scale: expected a float or {self.topology.n_objectives} values "
+                f"(one per objective), got {scale.size}"
+            )
+        if not np.all(np.isfinite(scale) & (scale > 0)):
+            raise ValueError(f"rho_scale: expected positive finite values, got {self.rho_scale}")
+        if not 0.0 < float(self.relaxation) < 2.0:
+            raise ValueError(f"relaxation: expected a value in (0, 2), got {self.relaxation}")
         self.topology.check_local_explicit()
 
     def _rows(self, j: int) -> np.ndarray:
@@ -319,96 +424,89 @@ class LocalExplicit:
         ``rho``: ``None`` for eq.opt_ro per objective, a scalar, or (n_obj,).
         """
         T = self.topology
-        H, E = local_costs(T, data)
-        Ains, bins = [], []
-        for j in range(T.n_objectives):
-            rows = self._rows(j)
-            cols = np.asarray(T.group_columns(j))
-            Ains.append(data.Ain[np.ix_(rows, cols)])
-            bins.append(data.bin[:, rows])
-        if rho is None:
-            rho_arr = self._optimal_rhos(H, Ains)
-        else:
-            rho_arr = jnp.broadcast_to(jnp.asarray(rho, H[0].dtype), (T.n_objectives,))
-        # Factorise every K_j = H_j + rho_j Abar_j'Abar_j in one batched call
-        # (padded to a common size with an identity block and zero right-hand
-        # sides, which leaves each K_j^-1 [E_j, Abar_j'] unchanged).
-        Abars, Ks, rhss = [], [], []
-        for j in range(T.n_objectives):
-            Abar = jnp.kron(jnp.eye(T.horizon, dtype=H[j].dtype), Ains[j])
-            Abars.append(Abar)
-            Ks.append(H[j] + rho_arr[j] * Abar.T @ Abar)
-            rhss.append(jnp.concatenate([E[j][:, None], Abar.T], axis=1))
-        n_max = max(k.shape[0] for k in Ks)
-        c_max = max(r.shape[1] for r in rhss)
-        K_b = jnp.stack([_pad_identity(k, n_max) for k in Ks])
-        rhs_b = jnp.stack(
-            [jnp.pad(r, ((0, n_max - r.shape[0]), (0, c_max - r.shape[1]))) for r in rhss]
-        )
-        sol_b = jsl.cho_solve((jnp.linalg.cholesky(K_b), True), rhs_b)
-        KE, KA = [], []
-        for j in range(T.n_objectives):
-            n_j, c_j = rhss[j].shape
-            KE.append(sol_b[j, :n_j, 0])
-            KA.append(sol_b[j, :n_j, 1:c_j])
         lay = _layout(T)
-        seg = jnp.asarray(lay.segment, rho_arr.dtype)
-        rho_rows = rho_arr @ seg
-        den = jnp.zeros((T.horizon * T.n_c,), rho_arr.dtype).at[lay.gather].add(rho_rows)
+        J, U = lay.cols.shape
+        N = T.horizon
+        H, E = _padded_costs(T, data)
+        dt = H.dtype
+        n = N * U
+        Aix = jnp.pad(data.Ain, ((0, 1), (0, 1)))  # padded row / column index -> 0
+        Ain = Aix[lay.rows[:, :, None], lay.cols[:, None, :]]  # (J, C, U)
+        bx = jnp.pad(data.bin, ((0, 0), (0, 1)))
+        b = jnp.moveaxis(bx[:, lay.rows], 1, 0)  # (J, N, C)
+        AtA = jnp.einsum("jcu,jcv->juv", Ain, Ain)
+        if rho is None:
+            scale = np.broadcast_to(np.asarray(self.rho_scale, dtype=float), (J,))
+            rho_arr = self._optimal_rhos(H, Ain, AtA) * jnp.asarray(scale, dt)
+        else:
+            rho_arr = jnp.broadcast_to(jnp.asarray(rho, dt), (J,))
+        # K_j = H_j + rho_j I (x) A_in,j'A_in,j, all objectives in one batched
+        # Cholesky; its explicit inverse makes an iteration a matrix-vector product.
+        Kb = H + rho_arr[:, None, None] * jnp.einsum(
+            "kl,juv->jkulv", jnp.eye(N, dtype=dt), AtA
+        ).reshape(J, n, n)
+        Kinv = jsl.cho_solve((jnp.linalg.cholesky(Kb), True), _eye_like(n, dt, J))
+        Kinv = 0.5 * (Kinv + jnp.swapaxes(Kinv, 1, 2))
+        KE = jnp.einsum("jab,jb->ja", Kinv, E)
+        S = jnp.asarray(lay.S, dt)
+        den = jnp.einsum("j,jcd->d", rho_arr, S)
         return LocalSetup(
-            H=tuple(H),
-            E=tuple(E),
-            Ain=tuple(Ains),
-            bin=tuple(bins),
+            H=H,
+            E=E,
+            Ain=Ain,
+            b=b,
             rho=rho_arr,
-            KE=jnp.concatenate(KE),
-            KA=jsl.block_diag(*KA),
-            Abar=jsl.block_diag(*Abars),
-            b=jnp.concatenate([x.reshape(-1) for x in bins]),
-            rho_rows=rho_rows,
-            inv_den=1.0 / den,
+            Kinv=Kinv,
+            KE=KE,
+            inv_den=1.0 / jnp.where(den > 0, den, 1.0),
             lb=data.lb,
             ub=data.ub,
         )
 
-    def _optimal_rhos(self, H: tuple, Ains: tuple) -> Any:
-        """eq.opt_ro for every objective, eigenvalues in one batched call.
-
-        For an objective with only box rows (the common case) A_in,j'A_in,j is
-        diagonal, so L^-1 H L^-T of :func:`optimal_rho` is a diagonal scaling
-        of H_j. The matrices are padded to a common size with their mean
-        eigenvalue (trace / n), which lies between the extreme eigenvalues and
-        so leaves mu_min and mu_max unchanged.
-        """
+    def _optimal_rhos(self, H: Any, Ain: Any, AtA: Any) -> Any:
+        """eq.opt_ro for every objective (see ``rho_method``)."""
         T = self.topology
-        nb = len(T.box_rows)
-        Gs, general = [], {}
-        for j in range(T.n_objectives):
-            full = T.group_rank[j] == len(T.group_columns(j))
-            if not full:
-                general[j] = optimal_rho(H[j], Ains[j], T.horizon, T.group_rank[j])
-                Gs.append(None)
-            elif all(c < nb for c in T.group_rows(j)):
-                dh = jnp.tile(1.0 / jnp.sqrt(jnp.sum(Ains[j] ** 2, axis=0)), T.horizon)
-                Gs.append(H[j] * dh[:, None] * dh[None, :])
+        lay = _layout(T)
+        J, U = lay.cols.shape
+        N = T.horizon
+        dt = H.dtype
+        full = np.asarray(lay.full)
+        out = [None] * J
+        if full.any():
+            # Padded inputs: identity in A_in'A_in (L = I there), so G's padded
+            # block is the identity, decoupled from the real entries.
+            eyeU = jnp.asarray(np.eye(U)[None] * (1.0 - lay.umask)[:, :, None], dt)
+            # rank-deficient objectives get an identity here and the exact form below
+            fixed = jnp.asarray((~full)[:, None, None] * np.eye(U), dt)
+            AtA_s = AtA * jnp.asarray(full[:, None, None], dt) + eyeU + fixed
+            La = jnp.linalg.cholesky(AtA_s)
+            Li = jsl.solve_triangular(La, _eye_like(U, dt, J), lower=True)
+            G = jnp.einsum("jab,jkblc,jdc->jkald", Li, H.reshape(J, N, U, N, U), Li)
+            G = G.reshape(J, N * U, N * U)
+            G = 0.5 * (G + jnp.swapaxes(G, 1, 2))
+            mask = jnp.asarray(np.tile(lay.umask, (1, N)), dt)
+            if self.rho_method == "power":
+                rho_full = _power_rho(G, mask, self.rho_iterations)
             else:
-                Gs.append(_scaled_hessian(H[j], Ains[j], T.horizon))
-        sizes = [g.shape[0] for g in Gs if g is not None]
-        if sizes:
-            n_max = max(sizes)
-            G_b = jnp.stack(
-                [_pad_mean(0.5 * (g + g.T), n_max) for g in Gs if g is not None]
-            )
-            mu = jnp.linalg.eigvalsh(G_b)
-            eps = jnp.finfo(mu.dtype).eps
-            rho_sym = jnp.sqrt(jnp.maximum(mu[:, 0], eps * mu[:, -1]) * mu[:, -1])
-        out, k = [], 0
-        for j in range(T.n_objectives):
-            if Gs[j] is None:
-                out.append(general[j])
-            else:
-                out.append(rho_sym[k])
-                k += 1
+                # exact: pad with the mean real eigenvalue (trace / n_j), which lies
+                # between the extreme ones and so leaves mu_min, mu_max unchanged
+                nj = jnp.asarray([N * u for u in lay.u_sizes], dt)
+                mean = jnp.einsum("jaa->j", G * mask[:, :, None]) / nj
+                G = G * (mask[:, :, None] * mask[:, None, :]) + (1 - mask)[:, :, None] * (
+                    mean[:, None, None] * jnp.eye(N * U, dtype=dt)
+                )
+                mu = jnp.linalg.eigvalsh(G)
+                eps = jnp.finfo(dt).eps
+                rho_full = jnp.sqrt(jnp.maximum(mu[:, 0], eps * mu[:, -1]) * mu[:, -1])
+            for j in range(J):
+                if full[j]:
+                    out[j] = rho_full[j]
+        for j in range(J):
+            if not full[j]:
+                u = lay.u_sizes[j]
+                Hj = _unpad_matrix(H[j], u, U, N)
+                Aj = Ain[j, : lay.c_sizes[j], :u]
+                out[j] = optimal_rho(Hj, Aj, N, T.group_rank[j])
         return jnp.stack(out)
 
     def init(self, setup: LocalSetup, warm: ADMMState | None = None) -> ADMMState:
@@ -416,12 +514,13 @@ class LocalExplicit:
         if warm is not None:
             return warm
         T = self.topology
+        lay = _layout(T)
         dt = setup.rho.dtype
         inf = jnp.full((T.n_objectives,), jnp.inf, dt)
         return ADMMState(
-            U=tuple(jnp.zeros((T.horizon, a.shape[1]), dt) for a in setup.Ain),
+            U=tuple(jnp.zeros((T.horizon, u), dt) for u in lay.u_sizes),
             Z=jnp.zeros((T.horizon, T.n_c), dt),
-            gamma=tuple(jnp.zeros((T.horizon, a.shape[0]), dt) for a in setup.Ain),
+            gamma=tuple(jnp.zeros((T.horizon, c), dt) for c in lay.c_sizes),
             iteration=jnp.zeros((), jnp.int32),
             primal=inf,
             dual=inf,
@@ -429,10 +528,15 @@ class LocalExplicit:
 
     # -- one iteration --------------------------------------------------------------
     def _flat(self, state: ADMMState) -> _Flat:
+        lay = _layout(self.topology)
+        J, U = lay.cols.shape
+        C = lay.rows.shape[1]
+        Up = jnp.stack([jnp.pad(u, ((0, 0), (0, U - u.shape[1]))) for u in state.U])
+        gp = jnp.stack([jnp.pad(g, ((0, 0), (0, C - g.shape[1]))) for g in state.gamma])
         return _Flat(
-            Z=state.Z.reshape(-1),
-            gamma=jnp.concatenate([g.reshape(-1) for g in state.gamma]),
-            U=jnp.concatenate([u.reshape(-1) for u in state.U]),
+            Z=state.Z,
+            gamma=gp,
+            U=Up.reshape(J, -1),
             iteration=state.iteration,
             primal=state.primal,
             dual=state.dual,
@@ -441,34 +545,50 @@ class LocalExplicit:
     def _unflat(self, flat: _Flat) -> ADMMState:
         T = self.topology
         lay = _layout(T)
+        J, U = lay.cols.shape
+        U3 = flat.U.reshape(J, T.horizon, U)
         return ADMMState(
-            U=_split(flat.U, lay.u_sizes, T.horizon),
-            Z=flat.Z.reshape(T.horizon, T.n_c),
-            gamma=_split(flat.gamma, lay.r_sizes, T.horizon),
+            U=tuple(U3[j, :, :u] for j, u in enumerate(lay.u_sizes)),
+            Z=flat.Z,
+            gamma=tuple(flat.gamma[j, :, :c] for j, c in enumerate(lay.c_sizes)),
             iteration=flat.iteration,
             primal=flat.primal,
             dual=flat.dual,
         )
 
     def _step_flat(self, setup: LocalSetup, st: _Flat) -> _Flat:
-        lay = _layout(self.topology)
-        rho = setup.rho_rows
-        Zs_old = st.Z[lay.gather]
+        T = self.topology
+        lay = _layout(T)
+        J, U = lay.cols.shape
+        C = lay.rows.shape[1]
+        N = T.horizon
+        dt = setup.rho.dtype
+        rho = setup.rho[:, None, None]
+        Zx = jnp.pad(st.Z, ((0, 0), (0, 1)))  # a zero slack for padded rows
+        Zs_old = jnp.moveaxis(Zx[:, lay.rows], 0, 1)  # (J, N, C): Z_j, objective j's rows
         w = rho * (Zs_old - setup.b) + st.gamma
-        U = -(setup.KE + setup.KA @ w)  # eq.F3_primal, all objectives at once
-        AU = setup.Abar @ U
-        v = -AU - st.gamma / rho + setup.b
-        padded = jnp.concatenate([rho * v, jnp.zeros((1,), v.dtype)])
-        num = padded[lay.scatter].sum(axis=1)  # sum_j rho_j v_jc per slack
-        Z = jnp.maximum(num * setup.inv_den, 0.0)  # eq.F3_dual, rho-weighted (NOTES 14)
-        Zs = Z[lay.gather]
+        g = jnp.einsum("jkc,jcu->jku", w, setup.Ain).reshape(J, N * U)  # Abar_j' w_j
+        Uf = -(setup.KE + jnp.einsum("jab,jb->ja", setup.Kinv, g))  # eq.F3_primal
+        AU = jnp.einsum("jku,jcu->jkc", Uf.reshape(J, N, U), setup.Ain)  # Abar_j U_j
+        # eq.F3_dual, rho-weighted (NOTES 14): Z_c = max(0, sum_j rho_j v_jc / sum_j rho_j)
+        if self.relaxation != 1.0:  # over-relaxation (Boyd et al. 2011, sec. 3.4.3)
+            a = self.relaxation
+            AUr = a * AU + (1.0 - a) * (setup.b - Zs_old)
+        else:
+            AUr = AU
+        rv = rho * (setup.b - AUr) - st.gamma  # rho_j v_j
+        S2 = jnp.asarray(lay.S.reshape(J * C, -1), dt)
+        num = jnp.moveaxis(rv, 0, 1).reshape(N, J * C) @ S2
+        Z = jnp.maximum(num * setup.inv_den, 0.0)
+        Zs = jnp.moveaxis(jnp.pad(Z, ((0, 0), (0, 1)))[:, lay.rows], 0, 1)
         r = AU - setup.b + Zs
+        gamma = st.gamma + rho * (AUr - setup.b + Zs)  # eq.F3_multiplier
         dz = Zs - Zs_old
-        gamma = st.gamma + rho * r  # eq.F3_multiplier
         if self.dual_residual == "paper":
             dz = rho * dz  # s_j = rho_j (Z_j - Z_j_prev), eq.Convergence
-        norms = jnp.asarray(lay.segment, r.dtype) @ jnp.stack([r * r, dz * dz], axis=1)
-        return _Flat(Z, gamma, U, st.iteration + 1, norms[:, 0], norms[:, 1])
+        primal = jnp.sum(r * r, axis=(1, 2))
+        dual = jnp.sum(dz * dz, axis=(1, 2))
+        return _Flat(Z, gamma, Uf, st.iteration + 1, primal, dual)
 
     def step(self, setup: LocalSetup, state: ADMMState) -> ADMMState:
         """One ADMM iteration: local, global and dual updates (alg:1 steps 5-9)."""
@@ -501,13 +621,12 @@ class LocalExplicit:
     def result(self, setup: LocalSetup, state: ADMMState) -> SolveResult:
         """Consensus inputs (average of the copies, projected on the bounds) and status."""
         T = self.topology
-        total = jnp.zeros((T.horizon, T.n_u), setup.rho.dtype)
-        count = np.zeros(T.n_u)
-        for j in range(T.n_objectives):
-            cols = np.asarray(T.group_columns(j))
-            total = total.at[:, cols].add(state.U[j])
-            count[cols] += 1
-        u = jnp.clip(total / jnp.asarray(count, total.dtype), setup.lb, setup.ub)
+        lay = _layout(T)
+        dt = setup.rho.dtype
+        P = jnp.asarray(lay.P, dt)
+        total = sum(state.U[j] @ P[j, : lay.u_sizes[j]] for j in range(T.n_objectives))
+        count = lay.P.sum(axis=(0, 1))
+        u = jnp.clip(total / jnp.asarray(count, dt), setup.lb, setup.ub)
         conv = self.converged(state)
         finite = jnp.all(jnp.isfinite(u)) & jnp.all(jnp.isfinite(state.primal))
         status = jnp.where(~finite, 2, jnp.where(conv, 0, 1)).astype(jnp.int32)
