@@ -95,7 +95,8 @@ class IntegratedADMM:
     """JAX-native integrated MPC: explicit ADMM on the undecomposed problem.
 
     Same settings and runners as :class:`~ampc_jax.formulations.LocalExplicit`;
-    rho from eq.opt_ro on the whole problem by default.
+    rho from eq.opt_ro on the whole problem by default (``rho_scale`` is one
+    float here: there is one objective).
     """
 
     topology: Topology
@@ -103,15 +104,23 @@ class IntegratedADMM:
     tol_primal: float = 1e-6
     tol_dual: float = 1e-6
     dual_residual: str = "slack"
+    rho_method: str = "power"
+    rho_iterations: int = 30
+    rho_scale: float = 1.0
+    relaxation: float = 1.0
 
     @property
     def inner(self) -> LocalExplicit:
         return LocalExplicit(
             merged_topology(self.topology),
-            self.max_iter,
-            self.tol_primal,
-            self.tol_dual,
-            self.dual_residual,
+            max_iter=self.max_iter,
+            tol_primal=self.tol_primal,
+            tol_dual=self.tol_dual,
+            dual_residual=self.dual_residual,
+            rho_method=self.rho_method,
+            rho_iterations=self.rho_iterations,
+            rho_scale=self.rho_scale,
+            relaxation=self.relaxation,
         )
 
     def solve(self, data: ProblemData, rho: Any = None, warm: Any = None) -> SolveResult:
