@@ -78,7 +78,6 @@ class LocalSetup(NamedTuple):
     side, so neither ever moves (the unpadded iterates are exactly those of
     the per-objective algorithm).
 
-    H : (J, n, n) H_j (padded).   E : (J, n) E_j.
     Ain : (J, C, U) per-step rows A_in,j (Abar_j = I_{N_p} (x) A_in,j).
     b : (J, N_p, C) bbar_j, step by step.
     rho : (J,) rho_j.
@@ -88,8 +87,6 @@ class LocalSetup(NamedTuple):
     lb, ub : (N_p, n_u) bounds, to project the consensus output.
     """
 
-    H: Any
-    E: Any
     Ain: Any
     b: Any
     rho: Any
@@ -178,14 +175,42 @@ def _eye_like(n: int, dtype: Any, batch: int) -> Any:
     return jnp.broadcast_to(jnp.eye(n, dtype=dtype), (batch, n, n))
 
 
-def _padded_costs(topology: Topology, data: ProblemData) -> tuple[Any, Any]:
-    """(H, E) of every objective in the padded layout, all objectives at once.
+def _spd_inverse(M: Any) -> Any:
+    """Inverse of a batch (J, n, n) of symmetric positive definite matrices.
 
-    H : (J, N_p U, N_p U) with an identity block on padded inputs; E : (J, N_p U).
+    M = L L' (Cholesky), M^-1 = L^-T L^-1: one triangular solve and one product,
+    half the triangular work of ``cho_solve`` with an identity right-hand side.
+    """
+    L = jnp.linalg.cholesky(M)
+    Li = jax.lax.linalg.triangular_solve(
+        L, _eye_like(M.shape[-1], M.dtype, M.shape[0]), left_side=True, lower=True
+    )
+    return jnp.einsum("jka,jkb->jab", Li, Li)
+
+
+class _Costs(NamedTuple):
+    """Objective-stacked, padded cost data (see :func:`_padded_costs`).
+
+    Yu : (J, r, n) Y_u,j (r = N_p Y outputs, n = N_p U inputs, padded).
+    Q2 : (J, r, r) 2 Qbar_j = 2 I (x) Q_j.   BH : (J, U, U) 2 R_j / m (+ identity on padding).
+    H : (J, n, n) H_j = Y_u' 2Qbar Y_u + I (x) BH.   E : (J, n) E_j.
+    """
+
+    Yu: Any
+    Q2: Any
+    BH: Any
+    H: Any
+    E: Any
+
+
+def _padded_costs(topology: Topology, data: ProblemData) -> _Costs:
+    """H_j, E_j of every objective in the padded layout, all objectives at once.
+
     Same formulas as :func:`~ampc_jax.prediction.quadratic_cost` (eq.F3_primal_1,
     NOTES items 8, 18, 19): H_j = 2 (Y_u,j' Qbar_j Y_u,j + I (x) R_(j) / m),
     E_j = 2 Y_u,j' Qbar_j (Y_x,j X^(0) + Y_w,j Wbar - ref_j). The matrix powers
-    and the free response are shared by all objectives.
+    and the free response are shared by all objectives; padded inputs get an
+    identity block in H, padded outputs zero weight.
     """
     T = topology
     lay = _layout(T)
@@ -202,22 +227,51 @@ def _padded_costs(topology: Topology, data: ProblemData) -> tuple[Any, Any]:
     Bj = jnp.moveaxis(Bx[:, lay.cols], 1, 0)  # (J, n_x, U)
     Rx = jnp.pad(data.R, ((0, 1), (0, 1)))
     Rj = Rx[lay.cols[:, :, None], lay.cols[:, None, :]] * jnp.asarray(lay.scale, dt)[:, :, None]
+    BH = 2.0 * Rj + jnp.asarray(np.eye(U)[None] * (1.0 - lay.umask)[:, :, None], dt)
     Pw = matrix_powers(data.A, N)  # A^0..A^N
     k = np.arange(N)
     sel = jnp.asarray((k[:, None, None] - k[None, :, None] == k[None, None, :]), dt)
     # free response x^(k+1) = A^(k+1) x0 + sum_{l<=k} A^(k-l) w_l
     xf = Pw[1:] @ data.x0 + jnp.einsum("kld,dxz,lz->kx", sel, Pw[:N], data.w)
-    free = jnp.einsum("jyx,kx->jky", Cp, xf) - refp  # (J, N, Y)
+    free = (jnp.einsum("jyx,kx->jky", Cp, xf) - refp).reshape(J, N * Y)
     CPB = jnp.einsum("jyx,kxz,jzu->jkyu", Cp, Pw[:N], Bj)  # C_j A^k B_j
     Yu = jnp.einsum("kld,jdyu->jkylu", sel, CPB).reshape(J, N * Y, N * U)
-    QYu = jnp.einsum("jyz,jkzm->jkym", Qp, Yu.reshape(J, N, Y, N * U)).reshape(J, N * Y, N * U)
-    Rbar = jnp.einsum("kl,jab->jkalb", jnp.eye(N, dtype=dt), Rj).reshape(J, N * U, N * U)
-    H = 2.0 * (jnp.einsum("jam,jan->jmn", Yu, QYu) + Rbar)
+    Q2 = 2.0 * jnp.einsum("kl,jab->jkalb", jnp.eye(N, dtype=dt), Qp).reshape(J, N * Y, N * Y)
+    QYu = Q2 @ Yu
+    H = jnp.swapaxes(Yu, 1, 2) @ QYu + _block_diag(BH, N)
     H = 0.5 * (H + jnp.swapaxes(H, 1, 2))
-    pad = jnp.asarray(np.tile(1.0 - lay.umask, (1, N)), dt)  # (J, n)
-    H = H + pad[:, :, None] * jnp.eye(N * U, dtype=dt)
-    E = 2.0 * jnp.einsum("jam,ja->jm", QYu, free.reshape(J, N * Y))
-    return H, E
+    E = jnp.einsum("jam,ja->jm", QYu, free)
+    return _Costs(Yu, Q2, BH, H, E)
+
+
+def _block_diag(B: Any, horizon: int) -> Any:
+    """I_{N_p} (x) B_j for a batch (J, U, U) -> (J, N_p U, N_p U)."""
+    J, U, _ = B.shape
+    eye = jnp.eye(horizon, dtype=B.dtype)
+    return jnp.einsum("kl,jab->jkalb", eye, B).reshape(J, horizon * U, horizon * U)
+
+
+def _lowrank_inverse(c: _Costs, B: Any, horizon: int) -> Any:
+    """(Y_u' 2Qbar Y_u + I (x) B)^-1 by the Woodbury identity (batch over j).
+
+    With D = I (x) B, W = Y_u D^-1 and M = W Y_u' (r x r)::
+
+        (D + Y_u' Q2 Y_u)^-1 = D^-1 - W' Q2 (I + M Q2)^-1 W
+
+    (valid for any positive semidefinite Q2, singular included). Only U x U and
+    r x r systems are factorised, against n x n for the dense path: cheaper
+    whenever an objective has fewer outputs than inputs (r < n).
+    """
+    J, r, n = c.Yu.shape
+    U = B.shape[-1]
+    Binv = _spd_inverse(B)
+    W = jnp.einsum("jskv,jvu->jsku", c.Yu.reshape(J, r, horizon, U), Binv).reshape(J, r, n)
+    M = W @ jnp.swapaxes(c.Yu, 1, 2)
+    S = jnp.eye(r, dtype=B.dtype) + c.Q2 @ M  # (I + M Q2)' = I + Q2 M
+    P = jnp.linalg.solve(S, c.Q2)  # (I + Q2 M)^-1 Q2 = Q2 (I + M Q2)^-1
+    P = 0.5 * (P + jnp.swapaxes(P, 1, 2))
+    inv = _block_diag(Binv, horizon) - jnp.swapaxes(W, 1, 2) @ P @ W
+    return 0.5 * (inv + jnp.swapaxes(inv, 1, 2))
 
 
 def _unpad_matrix(M: Any, n_u: int, U: int, horizon: int) -> Any:
@@ -230,7 +284,8 @@ def local_costs(topology: Topology, data: ProblemData) -> tuple[tuple, tuple]:
     lay = _layout(topology)
     U = lay.cols.shape[1]
     N = topology.horizon
-    H, E = _padded_costs(topology, data)
+    c = _padded_costs(topology, data)
+    H, E = c.H, c.E
     Hs = tuple(_unpad_matrix(H[j], n, U, N) for j, n in enumerate(lay.u_sizes))
     Es = tuple(E[j].reshape(N, U)[:, :n].reshape(-1) for j, n in enumerate(lay.u_sizes))
     return Hs, Es
@@ -291,34 +346,38 @@ def _scaled_hessian(H: Any, Ain: Any, horizon: int) -> Any:
     return G if batched else G[0]
 
 
-def _power_rho(G: Any, mask: Any, iterations: int) -> Any:
-    """eq.opt_ro with mu_min, mu_max of G estimated by power iteration.
+def _power_rho(H: Any, Hinv: Any, Lam: Any, Laminv: Any, mask: Any, iterations: int) -> Any:
+    """eq.opt_ro with mu_min, mu_max estimated by power iteration.
 
-    G : (J, n, n) symmetric positive definite (padded entries decoupled), mask :
-    (J, n) 1 on real entries. mu_max is the Rayleigh quotient of G after
-    ``iterations`` steps of the power method on G, mu_min the inverse of the
-    one of G^-1 (explicit, from a Cholesky factor). Rayleigh quotients lie
-    inside the spectrum, so mu_max is under- and mu_min over-estimated; the
-    product's error is second order in the iterate's angle to the extreme
-    eigenvectors, and it is only a convergence-rate parameter (the solution
-    does not depend on it). Measured against the exact eigendecomposition
-    (tests/test_formulations.py): within a few percent.
+    mu are the eigenvalues of the pencil H x = mu Lambda x, Lambda = Abar'Abar
+    (= I (x) A_in,j'A_in,j, positive definite for full column rank rows): the
+    same as those of G = L^-1 H L^-T of :func:`optimal_rho`, without forming
+    L. mu_max comes from iterating x <- Lambda^-1 H x, mu_min from
+    x <- H^-1 Lambda x; each estimate is the Rayleigh quotient
+    x'Hx / x'Lambda x, which lies inside [mu_min, mu_max], so mu_max is under-
+    and mu_min over-estimated. rho only sets the convergence rate (the
+    solution does not depend on it): ``rho_iterations`` = 8 gave rho within
+    10 % of the exact eigendecomposition on the generated and the cruise
+    problems (tests/test_formulations.py states the tolerance).
+
+    H, Hinv, Lam, Laminv : (J, n, n); mask : (J, n) 1 on real entries.
     """
-    J, n, _ = G.shape
-    dt = G.dtype
-    Ginv = jsl.cho_solve((jnp.linalg.cholesky(G), True), _eye_like(n, dt, J))
-    M = jnp.stack([G, Ginv], axis=1)  # (J, 2, n, n)
+    J, n, _ = H.shape
+    dt = H.dtype
+    M = jnp.stack([Laminv @ H, Hinv @ Lam], axis=1)  # (J, 2, n, n)
     v0 = np.random.default_rng(12345).uniform(0.5, 1.5, n)
-    v = jnp.broadcast_to(jnp.asarray(v0, dt) * mask, (2, J, n)).transpose(1, 0, 2)
+    v = jnp.broadcast_to((jnp.asarray(v0, dt) * mask)[:, None, :], (J, 2, n))
 
     def body(_: Any, v: Any) -> Any:
         v = jnp.einsum("jpab,jpb->jpa", M, v)
         return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
 
-    v = jax.lax.fori_loop(0, iterations, body, v / jnp.sqrt(jnp.sum(v * v, -1, keepdims=True)))
-    rq = jnp.einsum("jpa,jpab,jpb->jp", v, M, v)
-    mu_max = rq[:, 0]
-    mu_min = jnp.maximum(1.0 / rq[:, 1], jnp.finfo(dt).eps * mu_max)
+    v = jax.lax.fori_loop(0, iterations, body, v)
+    num = jnp.einsum("jpa,jab,jpb->jp", v, H, v)
+    den = jnp.einsum("jpa,jab,jpb->jp", v, Lam, v)
+    rq = num / den
+    mu_max = jnp.maximum(rq[:, 0], rq[:, 1])
+    mu_min = jnp.maximum(jnp.minimum(rq[:, 0], rq[:, 1]), jnp.finfo(dt).eps * mu_max)
     return jnp.sqrt(mu_min * mu_max)
 
 
@@ -375,6 +434,10 @@ class LocalExplicit:
         alpha Abar_j U_j + (1 - alpha)(bbar_j - Z_j^(q-1)). 1.0 (default) is
         the paper's iteration; 1.5 to 1.8 usually needs fewer iterations. The
         stopping rule still tests the unrelaxed residual r_j.
+    factorisation : how K_j^-1 (and H_j^-1 for rho) are formed: ``"dense"``
+        (Cholesky of the N_p n_u,j square matrix), ``"lowrank"`` (Woodbury
+        identity through the N_p n_y,j outputs, :func:`_lowrank_inverse`) or
+        ``"auto"`` (low-rank when every objective has fewer outputs than inputs).
 
     Use :meth:`solve` for deployment (early stop) and :meth:`solve_fixed` for
     differentiation (fixed iteration count under ``lax.scan``). Both are pure
@@ -387,9 +450,10 @@ class LocalExplicit:
     tol_dual: float = 1e-6
     dual_residual: str = "slack"
     rho_method: str = "power"
-    rho_iterations: int = 30
+    rho_iterations: int = 8
     rho_scale: float | tuple = 1.0
     relaxation: float = 1.0
+    factorisation: str = "auto"
 
     def __post_init__(self) -> None:
         if self.dual_residual not in ("slack", "paper"):
@@ -410,6 +474,10 @@ class LocalExplicit:
             )
         if not np.all(np.isfinite(scale) & (scale > 0)):
             raise ValueError(f"rho_scale: expected positive finite values, got {self.rho_scale}")
+        if self.factorisation not in ("auto", "dense", "lowrank"):
+            raise ValueError(
+                f"factorisation: expected 'auto', 'dense' or 'lowrank', got {self.factorisation!r}"
+            )
         if not 0.0 < float(self.relaxation) < 2.0:
             raise ValueError(f"relaxation: expected a value in (0, 2), got {self.relaxation}")
         self.topology.check_local_explicit()
@@ -418,18 +486,31 @@ class LocalExplicit:
         return np.asarray(self.topology.group_rows(j), dtype=np.int32)
 
     # -- per-step setup -----------------------------------------------------------
+    @property
+    def lowrank(self) -> bool:
+        """Whether K_j^-1 comes from the Woodbury identity (:func:`_lowrank_inverse`).
+
+        ``factorisation="auto"``: when every objective (padded) has fewer outputs
+        than inputs per step.
+        """
+        if self.factorisation != "auto":
+            return self.factorisation == "lowrank"
+        lay = _layout(self.topology)
+        return max(lay.y_sizes) < lay.cols.shape[1]
+
     def setup(self, data: ProblemData, rho: Any = None) -> LocalSetup:
         """Build H_j, E_j, rho_j and factorise (once per control step).
 
-        ``rho``: ``None`` for eq.opt_ro per objective, a scalar, or (n_obj,).
+        ``rho``: ``None`` for eq.opt_ro per objective (times ``rho_scale``), a
+        scalar, or (n_obj,).
         """
         T = self.topology
         lay = _layout(T)
         J, U = lay.cols.shape
+        C = lay.rows.shape[1]
         N = T.horizon
-        H, E = _padded_costs(T, data)
-        dt = H.dtype
-        n = N * U
+        c = _padded_costs(T, data)
+        dt = c.H.dtype
         Aix = jnp.pad(data.Ain, ((0, 1), (0, 1)))  # padded row / column index -> 0
         Ain = Aix[lay.rows[:, :, None], lay.cols[:, None, :]]  # (J, C, U)
         bx = jnp.pad(data.bin, ((0, 0), (0, 1)))
@@ -437,22 +518,20 @@ class LocalExplicit:
         AtA = jnp.einsum("jcu,jcv->juv", Ain, Ain)
         if rho is None:
             scale = np.broadcast_to(np.asarray(self.rho_scale, dtype=float), (J,))
-            rho_arr = self._optimal_rhos(H, Ain, AtA) * jnp.asarray(scale, dt)
+            rho_arr = self._optimal_rhos(c, Ain, AtA) * jnp.asarray(scale, dt)
         else:
             rho_arr = jnp.broadcast_to(jnp.asarray(rho, dt), (J,))
         # K_j = H_j + rho_j I (x) A_in,j'A_in,j, all objectives in one batched
-        # Cholesky; its explicit inverse makes an iteration a matrix-vector product.
-        Kb = H + rho_arr[:, None, None] * jnp.einsum(
-            "kl,juv->jkulv", jnp.eye(N, dtype=dt), AtA
-        ).reshape(J, n, n)
-        Kinv = jsl.cho_solve((jnp.linalg.cholesky(Kb), True), _eye_like(n, dt, J))
-        Kinv = 0.5 * (Kinv + jnp.swapaxes(Kinv, 1, 2))
-        KE = jnp.einsum("jab,jb->ja", Kinv, E)
+        # factorisation; its explicit inverse makes an iteration a matrix-vector product.
+        BK = c.BH + rho_arr[:, None, None] * AtA
+        if self.lowrank:
+            Kinv = _lowrank_inverse(c, BK, N)
+        else:
+            Kinv = _spd_inverse(c.H + _block_diag(rho_arr[:, None, None] * AtA, N))
+        KE = jnp.einsum("jab,jb->ja", Kinv, c.E)
         S = jnp.asarray(lay.S, dt)
         den = jnp.einsum("j,jcd->d", rho_arr, S)
         return LocalSetup(
-            H=H,
-            E=E,
             Ain=Ain,
             b=b,
             rho=rho_arr,
@@ -463,33 +542,51 @@ class LocalExplicit:
             ub=data.ub,
         )
 
-    def _optimal_rhos(self, H: Any, Ain: Any, AtA: Any) -> Any:
+    def _optimal_rhos(self, c: _Costs, Ain: Any, AtA: Any) -> Any:
         """eq.opt_ro for every objective (see ``rho_method``)."""
         T = self.topology
         lay = _layout(T)
         J, U = lay.cols.shape
         N = T.horizon
+        H = c.H
         dt = H.dtype
         full = np.asarray(lay.full)
         out = [None] * J
         if full.any():
-            # Padded inputs: identity in A_in'A_in (L = I there), so G's padded
-            # block is the identity, decoupled from the real entries.
+            # Padded inputs: identity in A_in'A_in and in H, decoupled from the real
+            # entries. Rank-deficient objectives get an identity here and the exact
+            # form below.
             eyeU = jnp.asarray(np.eye(U)[None] * (1.0 - lay.umask)[:, :, None], dt)
-            # rank-deficient objectives get an identity here and the exact form below
             fixed = jnp.asarray((~full)[:, None, None] * np.eye(U), dt)
-            AtA_s = AtA * jnp.asarray(full[:, None, None], dt) + eyeU + fixed
-            La = jnp.linalg.cholesky(AtA_s)
-            Li = jsl.solve_triangular(La, _eye_like(U, dt, J), lower=True)
-            G = jnp.einsum("jab,jkblc,jdc->jkald", Li, H.reshape(J, N, U, N, U), Li)
-            G = G.reshape(J, N * U, N * U)
-            G = 0.5 * (G + jnp.swapaxes(G, 1, 2))
+            LamB = AtA * jnp.asarray(full[:, None, None], dt) + eyeU + fixed
             mask = jnp.asarray(np.tile(lay.umask, (1, N)), dt)
             if self.rho_method == "power":
-                rho_full = _power_rho(G, mask, self.rho_iterations)
+                # H may be singular (R_j = 0): a shift of eps * mean(diag H) keeps
+                # its inverse finite and mu_min at about the eps * mu_max floor
+                nj = jnp.asarray([N * u for u in lay.u_sizes], dt)
+                tr = jnp.einsum("jaa->j", H * mask[:, :, None]) / nj
+                delta = (jnp.finfo(dt).eps * tr)[:, None, None]
+                if self.lowrank:
+                    Hinv = _lowrank_inverse(c, c.BH + delta * jnp.eye(U, dtype=dt), N)
+                else:
+                    Hinv = _spd_inverse(H + delta * jnp.eye(N * U, dtype=dt))
+                rho_full = _power_rho(
+                    H,
+                    Hinv,
+                    _block_diag(LamB, N),
+                    _block_diag(_spd_inverse(LamB), N),
+                    mask,
+                    self.rho_iterations,
+                )
             else:
-                # exact: pad with the mean real eigenvalue (trace / n_j), which lies
-                # between the extreme ones and so leaves mu_min, mu_max unchanged
+                # exact: G = L^-1 H L^-T padded with the mean real eigenvalue
+                # (trace / n_j), which lies between the extreme ones and so leaves
+                # mu_min, mu_max unchanged
+                La = jnp.linalg.cholesky(LamB)
+                Li = jsl.solve_triangular(La, _eye_like(U, dt, J), lower=True)
+                G = jnp.einsum("jab,jkblc,jdc->jkald", Li, H.reshape(J, N, U, N, U), Li)
+                G = G.reshape(J, N * U, N * U)
+                G = 0.5 * (G + jnp.swapaxes(G, 1, 2))
                 nj = jnp.asarray([N * u for u in lay.u_sizes], dt)
                 mean = jnp.einsum("jaa->j", G * mask[:, :, None]) / nj
                 G = G * (mask[:, :, None] * mask[:, None, :]) + (1 - mask)[:, :, None] * (

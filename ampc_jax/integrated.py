@@ -105,7 +105,7 @@ class IntegratedADMM:
     tol_dual: float = 1e-6
     dual_residual: str = "slack"
     rho_method: str = "power"
-    rho_iterations: int = 30
+    rho_iterations: int = 8
     rho_scale: float = 1.0
     relaxation: float = 1.0
 

@@ -13,6 +13,13 @@
 * ``SCENARIOS`` maps a name to a :class:`ScenarioSpec`: static data (example,
   duration, focus window) plus a :class:`Scenario` of arrays.
 
+Dtypes: paths and scenarios hold *NumPy float64* arrays, whatever JAX's x64
+setting was when they were built (``SCENARIOS`` is built at import time,
+typically before x64 is enabled). A run casts them to its own dtype
+(``simulation.run_closed_loop``); JAX functions given them directly convert
+them to JAX's default float dtype. So 0.3 stays 0.3 in float64 runs, and no
+float32 array is frozen into the registry.
+
 ISO 3888-1 double lane change (section lengths 15/30/25/25/15/30 m): lane 1
 (entry) X in [0, 15], transition [15, 45], lane 3 (side lane) [45, 70],
 transition [70, 95], lane 5 (exit) [95, 110], run-out [110, 140].  The
@@ -29,6 +36,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from ampc_jax.plant import PlantState, initial_state
@@ -84,9 +92,9 @@ def _pad(x0: list[float], x1: list[float], dy: list[float]) -> Path:
         raise ValueError(f"a path holds at most {MAX_STEPS} lane-change steps, got {n}")
     fill = MAX_STEPS - n
     return Path(
-        jnp.array(list(x0) + [1e6] * fill),
-        jnp.array(list(x1) + [1e6 + 1.0] * fill),
-        jnp.array(list(dy) + [0.0] * fill),
+        np.array(list(x0) + [1e6] * fill, dtype=np.float64),
+        np.array(list(x1) + [1e6 + 1.0] * fill, dtype=np.float64),
+        np.array(list(dy) + [0.0] * fill, dtype=np.float64),
     )
 
 
@@ -168,7 +176,7 @@ def _knots(t: list[float], v: list[float]) -> tuple[Array, Array]:
     fill = N_KNOTS - len(t)
     tt = list(t) + [t[-1] + 1.0 + k for k in range(fill)]
     vv = list(v) + [v[-1]] * fill
-    return jnp.array(tt), jnp.array(vv)
+    return np.array(tt, dtype=np.float64), np.array(vv, dtype=np.float64)
 
 
 def make_scenario(
@@ -182,10 +190,10 @@ def make_scenario(
     torque_limits: tuple[float, float] = (-3000.0, 4000.0),
     Y0: float = 0.0,
 ) -> Scenario:
-    """Build a :class:`Scenario` from lists (knots are padded to N_KNOTS)."""
+    """Build a :class:`Scenario` from lists (knots are padded to N_KNOTS); NumPy float64."""
     st, sv = _knots(*speed)
     tt, tv = _knots(*torque)
-    f = lambda x: jnp.asarray(x, float)  # noqa: E731
+    f = lambda x: np.asarray(x, dtype=np.float64)  # noqa: E731
     return Scenario(
         f(mu),
         f(v0),
@@ -219,8 +227,11 @@ class ScenarioSpec(NamedTuple):
 
 
 def stack_scenarios(specs: list[ScenarioSpec] | tuple[ScenarioSpec, ...]) -> Scenario:
-    """Stack the array data of several scenarios along a new leading axis (for vmap)."""
-    return jax.tree.map(lambda *x: jnp.stack(x), *[s.scenario for s in specs])
+    """Stack the array data of several scenarios along a new leading axis (for vmap).
+
+    NumPy arrays in, NumPy arrays out (dtype kept; see the module docstring).
+    """
+    return jax.tree.map(lambda *x: np.stack([np.asarray(a) for a in x]), *[s.scenario for s in specs])
 
 
 def _cruise_lane_change() -> ScenarioSpec:

@@ -81,7 +81,9 @@ from .vehicle import (
 )
 
 __all__ = [
+    "CONTROLLER_DEFAULTS",
     "FORMULATIONS",
+    "PAPER_SOLVER_OPTIONS",
     "SCENARIO_SETTINGS",
     "SimConfig",
     "SimLog",
@@ -89,6 +91,9 @@ __all__ = [
     "Simulator",
     "build_topology",
     "config_for",
+    "controller_solver",
+    "integrated_solver",
+    "local_explicit_solver",
     "reduced_data",
     "replay_timing",
     "run_closed_loop",
@@ -108,6 +113,42 @@ _CRUISE_DRIVER_PI = (1500.0, 200.0)
 
 
 # --------------------------------------------------------------------------- configuration
+_SOLVER_OPTIONS = (
+    "rho_scale",
+    "relaxation",
+    "integrated_rho_scale",
+    "shadow_rho_scale",
+    "shadow_relaxation",
+)
+
+CONTROLLER_DEFAULTS: dict[str, dict[str, Any]] = {
+    "cruise": {
+        "rho_scale": (1.0, 1.0),  # (LST, YRT)
+        "relaxation": 1.0,
+        "integrated_rho_scale": 1.0,
+        "shadow_rho_scale": 1.0,
+        "shadow_relaxation": 1.0,
+    },
+    "stability": {
+        "rho_scale": (1.0, 1.0),  # (VSC, WSC)
+        "relaxation": 1.0,
+        "integrated_rho_scale": 1.0,
+        "shadow_rho_scale": 1.0,
+        "shadow_relaxation": 1.0,
+    },
+}
+"""Per-example defaults of the solver options of :class:`SimConfig` (see its docstring)."""
+
+PAPER_SOLVER_OPTIONS: dict[str, Any] = {
+    "rho_scale": 1.0,
+    "relaxation": 1.0,
+    "integrated_rho_scale": 1.0,
+    "shadow_rho_scale": 1.0,
+    "shadow_relaxation": 1.0,
+}
+"""eq.opt_ro's rho* unscaled and no over-relaxation: the paper's iteration (``config_for(..., **PAPER_SOLVER_OPTIONS)``)."""
+
+
 @dataclass(frozen=True)
 class SimConfig:
     """Static settings of one closed-loop run (hashable: a ``jit`` static argument).
@@ -131,11 +172,31 @@ class SimConfig:
     max_iter : iteration cap of the controller.
     warm_start : warm start Local Explicit from the previous step's shifted state
         (``False``: cold start at every step, as the paper).
+    rho_scale : factor(s) on eq.opt_ro's rho_j* of Local Explicit, a float or
+        one per objective of the *example* in its order (LST, YRT or VSC, WSC);
+        with ``disabled`` objectives only the enabled entries are used.
+        ``None``: the example's default in :data:`CONTROLLER_DEFAULTS`.
+    relaxation : ADMM over-relaxation alpha in (0, 2) (1.0 is the paper's
+        iteration), used by Local Explicit *and* by the IntegratedADMM it is
+        compared with (controller ``--formulation integrated``, r_time replay),
+        so that r_time compares like with like. ``None``: the example's default.
+    integrated_rho_scale : factor on eq.opt_ro's rho* of the IntegratedADMM
+        used as the controller and in the r_time replay (one objective, so one
+        float), tuned for it by the same sweep as ``rho_scale``.
+        ``None``: the example's default.
     shadow : solve the integrated MPC in shadow (e_sub of eq.suboptimality).
     shadow_tol_primal, shadow_tol_dual, shadow_max_iter : tolerances and cap of
         the shadow IntegratedADMM (warm started from its own previous step);
         tight enough for about 1e-3 Nm against Clarabel.
+    shadow_rho_scale, shadow_relaxation : rho* factor and over-relaxation of
+        the shadow. They only change how fast the shadow reaches its tight
+        tolerance, not the optimum it reports. ``None``: the example's default.
     params, driver : vehicle and driver data.
+
+    The example defaults (``CONTROLLER_DEFAULTS``) and how they were chosen
+    (an offline sweep over rho_scale x relaxation on logged closed-loop steps,
+    ``bench/bench_closed_loop.py sweep``) are in ``docs/results.md``, "Solver
+    tuning".
     """
 
     example: str = "cruise"
@@ -146,10 +207,15 @@ class SimConfig:
     tol_dual: float = 1.0
     max_iter: int = 200
     warm_start: bool = True
+    rho_scale: float | tuple[float, ...] | None = None
+    relaxation: float | None = None
+    integrated_rho_scale: float | None = None
     shadow: bool = True
     shadow_tol_primal: float = 1e-8
     shadow_tol_dual: float = 1e-8
     shadow_max_iter: int = 5000
+    shadow_rho_scale: float | None = None
+    shadow_relaxation: float | None = None
     params: VehicleParams = field(default_factory=VehicleParams)
     driver: DriverParams = field(default_factory=DriverParams)
 
@@ -172,6 +238,45 @@ class SimConfig:
                 )
         if not self.enabled and self.formulation != "none":
             raise ValueError("every objective is disabled; use --formulation none instead")
+        self._resolve_solver_options()
+
+    def _resolve_solver_options(self) -> None:
+        """Fill ``None`` solver options from CONTROLLER_DEFAULTS and validate them all."""
+        defaults = CONTROLLER_DEFAULTS[self.example]
+        for name in _SOLVER_OPTIONS:
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, defaults[name])
+        n_obj = len(self.objectives_all)
+        scale = self.rho_scale
+        try:
+            arr = np.atleast_1d(np.asarray(scale, dtype=float))
+        except (TypeError, ValueError):
+            arr = np.array([np.nan])
+        if arr.ndim != 1 or arr.size not in (1, n_obj):
+            raise ValueError(
+                f"rho_scale: expected a float or {n_obj} values (one per objective of the "
+                f"{self.example} example: {', '.join(self.objectives_all)}), got {scale!r}"
+            )
+        if not np.all(np.isfinite(arr) & (arr > 0)):
+            raise ValueError(f"rho_scale: expected positive finite values, got {scale!r}")
+        # hashable and canonical: a float, or a tuple of floats (one per objective)
+        object.__setattr__(
+            self, "rho_scale", float(arr[0]) if arr.size == 1 else tuple(float(x) for x in arr)
+        )
+        for name in ("integrated_rho_scale", "shadow_rho_scale"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)):
+                raise ValueError(f"{name}: expected a positive finite float, got {v!r}")
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name}: expected a positive finite float, got {v!r}")
+            object.__setattr__(self, name, float(v))
+        for name in ("relaxation", "shadow_relaxation"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)):
+                raise ValueError(f"{name}: expected a float in (0, 2), got {v!r}")
+            if not 0.0 < float(v) < 2.0:
+                raise ValueError(f"{name}: expected a value in (0, 2), got {v!r}")
+            object.__setattr__(self, name, float(v))
 
     # -- the example's static structure --------------------------------------------
     @property
@@ -201,19 +306,36 @@ class SimConfig:
     def horizon(self) -> int:
         return int(self.settings.horizon)
 
+    @property
+    def enabled_rho_scale(self) -> float | tuple[float, ...]:
+        """``rho_scale`` restricted to the enabled objectives (what Local Explicit gets)."""
+        if isinstance(self.rho_scale, float):
+            return self.rho_scale
+        keep = [self.rho_scale[self.objectives_all.index(o)] for o in self.enabled]
+        return keep[0] if len(keep) == 1 else tuple(keep)
 
-# Per-scenario settings table (the paper gives no weights or horizon; see docs/results.md).
+    def solver_options(self) -> dict[str, Any]:
+        """The solver options as resolved (for metrics.json)."""
+        out: dict[str, Any] = {name: getattr(self, name) for name in _SOLVER_OPTIONS}
+        out["rho_scale"] = (
+            list(self.rho_scale) if isinstance(self.rho_scale, tuple) else self.rho_scale
+        )
+        return out
+
+
 SCENARIO_SETTINGS: dict[str, dict[str, Any]] = {
-    # N_p = 2 and Q_YRT = 1e4: the model holds the lateral tyre forces over the horizon,
-    # so a short horizon and a stiff yaw weight track best (docs/results.md, "Tuning").
-    "cruise_lane_change": {"settings": CruiseSettings(horizon=2, q_yrt=1.0e4)},
-    # N_p = 3: fewer iterations and slightly better yaw tracking than the default 5.
-    "stability_launch_brake": {"settings": StabilitySettings(horizon=3)},
-    "stability_dlc": {"settings": StabilitySettings(horizon=3)},
+    "cruise_lane_change": {},
+    "stability_launch_brake": {},
+    "stability_dlc": {},
 }
-"""Overrides of :class:`SimConfig` fields per scenario (``settings`` is a settings object).
+"""Overrides of :class:`SimConfig` fields per scenario (none at present).
 
-The ``--disable`` comparisons (LST alone, driver alone) use the same settings."""
+The weights and horizons the scenarios use are the defaults of
+:class:`~ampc_jax.vehicle.CruiseSettings` (N_p = 2, Q_YRT = 1e4) and
+:class:`~ampc_jax.vehicle.StabilitySettings` (N_p = 3), the single source of
+truth (``docs/results.md``, "Settings"); the solver options are the example's
+:data:`CONTROLLER_DEFAULTS`. The ``--disable`` comparisons (LST alone, driver
+alone) use the same settings."""
 
 
 def config_for(spec: ScenarioSpec | str, **overrides: Any) -> SimConfig:
@@ -290,6 +412,41 @@ def reduced_data(
         w=model.w,
         dtype=dtype,
     )
+
+
+def local_explicit_solver(
+    config: SimConfig, topology: Topology, max_iter: int | None = None
+) -> LocalExplicit:
+    """Local Explicit with the controller's tolerances, rho_scale and relaxation."""
+    return LocalExplicit(
+        topology,
+        max_iter=config.max_iter if max_iter is None else max_iter,
+        tol_primal=config.tol_primal,
+        tol_dual=config.tol_dual,
+        rho_scale=config.enabled_rho_scale,
+        relaxation=config.relaxation,
+    )
+
+
+def integrated_solver(
+    config: SimConfig, topology: Topology, max_iter: int | None = None
+) -> IntegratedADMM:
+    """IntegratedADMM with the controller's tolerances and relaxation, its own rho scale."""
+    return IntegratedADMM(
+        topology,
+        max_iter=config.max_iter if max_iter is None else max_iter,
+        tol_primal=config.tol_primal,
+        tol_dual=config.tol_dual,
+        rho_scale=config.integrated_rho_scale,
+        relaxation=config.relaxation,
+    )
+
+
+def controller_solver(config: SimConfig, topology: Topology) -> LocalExplicit | IntegratedADMM:
+    """The closed loop's controller for ``config.formulation`` (not ``"none"``)."""
+    if config.formulation == "integrated":
+        return integrated_solver(config, topology)
+    return local_explicit_solver(config, topology)
 
 
 def _zero_state(topology: Topology, dtype: Any) -> ADMMState:
@@ -371,13 +528,8 @@ class Simulator:
         return self.structure[0]
 
     def controller(self) -> LocalExplicit | IntegratedADMM:
-        c = self.config
-        T = self.topology
-        if c.formulation == "integrated":
-            return IntegratedADMM(
-                T, max_iter=c.max_iter, tol_primal=c.tol_primal, tol_dual=c.tol_dual
-            )
-        return LocalExplicit(T, max_iter=c.max_iter, tol_primal=c.tol_primal, tol_dual=c.tol_dual)
+        """The controller: Local Explicit or IntegratedADMM with the config's solver options."""
+        return controller_solver(self.config, self.topology)
 
     def shadow_solver(self, dtype: Any = None) -> IntegratedADMM:
         """The shadow integrated MPC; in float32 its tolerances are floored at 1e-4 Nm^2."""
@@ -388,6 +540,8 @@ class Simulator:
             max_iter=c.shadow_max_iter,
             tol_primal=max(c.shadow_tol_primal, floor),
             tol_dual=max(c.shadow_tol_dual, floor),
+            rho_scale=c.shadow_rho_scale,
+            relaxation=c.shadow_relaxation,
         )
 
     def _controller_topology(self) -> Topology:
@@ -544,10 +698,10 @@ class Simulator:
 def _cast(tree: Any, dtype: Any) -> Any:
     """Cast floating leaves to ``dtype``.
 
-    ``manoeuvres.SCENARIOS`` is built at import time; when x64 was enabled only
-    afterwards (the CLI imports this module before enabling it) its arrays are
-    float32. Widening float32 to float64 goes through the shortest decimal
-    representation, so 0.3 becomes 0.3 and not 0.30000001192.
+    ``manoeuvres`` builds scenarios as NumPy float64 (dtype-safe whatever the
+    x64 setting at import time). A scenario built by hand from float32 JAX
+    arrays is widened through the shortest decimal representation, so 0.3
+    becomes 0.3 and not 0.30000001192.
     """
 
     def cast(x: Any) -> Any:
@@ -690,6 +844,7 @@ class SimResult:
             "max_iter": c.max_iter,
             "tol_primal": c.tol_primal,
             "tol_dual": c.tol_dual,
+            **c.solver_options(),
             "steps": int(len(lg.t)),
             "duration_s": self.duration,
             "focus_s": list(self.focus),
@@ -743,7 +898,9 @@ class SimResult:
             "(make_data output -> local costs H_j/E_j, rho (eq.opt_ro), Cholesky, "
             "ADMM while_loop to tolerance, result) for Local Explicit and for IntegratedADMM "
             f"(same tolerances eps_r={self.config.tol_primal:g}, eps_s={self.config.tol_dual:g}, "
-            "same warm/cold start policy)"
+            f"same relaxation {self.config.relaxation:g}, rho* scaled by "
+            f"{self.config.enabled_rho_scale} and {self.config.integrated_rho_scale:g} "
+            "respectively, same warm/cold start policy)"
         )
 
 
@@ -772,7 +929,7 @@ def simulate(
     """
     spec = SCENARIOS[scenario] if isinstance(scenario, str) else scenario
     config = config or config_for(spec)
-    sc = spec.scenario if mu is None else spec.scenario._replace(mu=jnp.asarray(mu))
+    sc = spec.scenario if mu is None else spec.scenario._replace(mu=np.asarray(mu, np.float64))
     dur = spec.duration if duration is None else float(duration)
     n = int(round(dur / CONTROL_DT))
     dtype = dtype or jnp.result_type(float)
@@ -799,7 +956,10 @@ def replay_timing(config: SimConfig, log: SimLog, repeats: int = 3) -> dict[str,
     factorisation, the ADMM ``while_loop`` to the *controller's* tolerance
     ``config.tol_primal``, ``config.tol_dual`` and the result -- with ``block_until_ready``; the median of
     ``repeats`` calls per step. Building the model and ``make_data`` are not
-    timed (identical for both). Warm start: Local Explicit gets the warm state
+    timed (identical for both). Both use ``config.relaxation``; Local Explicit
+    scales eq.opt_ro's rho* by ``config.rho_scale`` (enabled objectives),
+    IntegratedADMM by its own ``config.integrated_rho_scale``, each tuned by
+    the same sweep (``docs/results.md``). Warm start: Local Explicit gets the warm state
     it had in the loop; IntegratedADMM is replayed sequentially from its own
     shifted previous solution at the same tolerance (cold at every step when
     ``config.warm_start`` is False).
@@ -810,9 +970,8 @@ def replay_timing(config: SimConfig, log: SimLog, repeats: int = 3) -> dict[str,
     and ``integrated_iterations``, ``distributed_iterations``.
     """
     T = build_topology(config)[0]
-    tp, td = config.tol_primal, config.tol_dual
-    le = LocalExplicit(T, max_iter=config.max_iter, tol_primal=tp, tol_dual=td)
-    ia = IntegratedADMM(T, max_iter=max(config.max_iter, 2000), tol_primal=tp, tol_dual=td)
+    le = local_explicit_solver(config, T)
+    ia = integrated_solver(config, T, max_iter=max(config.max_iter, 2000))
     if config.formulation == "integrated":
         raise ValueError(
             "replay_timing compares Local Explicit with IntegratedADMM; run local_explicit"

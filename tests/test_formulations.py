@@ -45,11 +45,31 @@ def test_matches_integrated_optimum(n_obj, shared):
     problems = [random_problem(seed, n_obj, shared=shared) for seed in range(10)]
     T = problems[0].topology
     assert all(p.topology == T for p in problems)
+    assert LocalExplicit(T).lowrank  # one output, several inputs per objective
     res, active = compare_batch(problems, LocalExplicit(T, **TIGHT))
     assert active > 0, "generated problems must have active constraints"
     # per-objective rho differ (NOTES item 14 is exercised)
     rho = np.asarray(res.rho)
     assert np.max(rho.max(1) / rho.min(1)) > 2
+
+
+@pytest.mark.parametrize("n_obj,shared", [(2, "all"), (3, "both")])
+def test_dense_factorisation_matches_integrated_optimum(n_obj, shared):
+    """The Cholesky path (taken when objectives have as many outputs as inputs)."""
+    problems = [random_problem(seed, n_obj, shared=shared) for seed in range(6)]
+    solver = LocalExplicit(problems[0].topology, factorisation="dense", **TIGHT)
+    assert not solver.lowrank
+    compare_batch(problems, solver)
+
+
+def test_lowrank_and_dense_setups_agree():
+    p = random_problem(7, 3, shared="both")
+    T, d = p.topology, p.data()
+    lo = LocalExplicit(T, factorisation="lowrank").setup(d)
+    de = LocalExplicit(T, factorisation="dense").setup(d)
+    np.testing.assert_allclose(lo.rho, de.rho, rtol=1e-6)
+    np.testing.assert_allclose(lo.Kinv, de.Kinv, rtol=1e-7, atol=1e-9 * np.abs(de.Kinv).max())
+    np.testing.assert_allclose(lo.KE, de.KE, rtol=1e-7, atol=1e-9 * np.abs(de.KE).max())
 
 
 def test_unequal_given_rho_still_exact():
@@ -202,10 +222,13 @@ def test_opt_rho_against_brute_force_scan():
     assert np.median(ratios) <= RHO_FACTOR_MEDIAN, ratios
 
 
-def test_float32_matches_float64():
+@pytest.mark.parametrize("factorisation", ["dense", "lowrank"])
+def test_float32_matches_float64(factorisation):
     p = random_problem(4, 2, shared="all")
     T = p.topology
-    solver = LocalExplicit(T, max_iter=3000, tol_primal=1e-7, tol_dual=1e-7)
+    solver = LocalExplicit(
+        T, max_iter=3000, tol_primal=1e-7, tol_dual=1e-7, factorisation=factorisation
+    )
     r64 = jax.jit(solver.solve)(p.data(jnp.float64))
     r32 = jax.jit(solver.solve)(p.data(jnp.float32))
     assert r32.u.dtype == jnp.float32 and r64.u.dtype == jnp.float64
