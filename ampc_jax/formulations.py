@@ -203,14 +203,15 @@ class _Costs(NamedTuple):
     E: Any
 
 
-def _padded_costs(topology: Topology, data: ProblemData) -> _Costs:
+def _padded_costs(topology: Topology, data: ProblemData, with_H: bool = True) -> _Costs:
     """H_j, E_j of every objective in the padded layout, all objectives at once.
 
     Same formulas as :func:`~ampc_jax.prediction.quadratic_cost` (eq.F3_primal_1,
     NOTES items 8, 18, 19): H_j = 2 (Y_u,j' Qbar_j Y_u,j + I (x) R_(j) / m),
     E_j = 2 Y_u,j' Qbar_j (Y_x,j X^(0) + Y_w,j Wbar - ref_j). The matrix powers
     and the free response are shared by all objectives; padded inputs get an
-    identity block in H, padded outputs zero weight.
+    identity block in H, padded outputs zero weight. ``with_H=False`` skips
+    forming H (n^2 r work) for the low-rank path, which never needs it.
     """
     T = topology
     lay = _layout(T)
@@ -238,8 +239,10 @@ def _padded_costs(topology: Topology, data: ProblemData) -> _Costs:
     Yu = jnp.einsum("kld,jdyu->jkylu", sel, CPB).reshape(J, N * Y, N * U)
     Q2 = 2.0 * jnp.einsum("kl,jab->jkalb", jnp.eye(N, dtype=dt), Qp).reshape(J, N * Y, N * Y)
     QYu = Q2 @ Yu
-    H = jnp.swapaxes(Yu, 1, 2) @ QYu + _block_diag(BH, N)
-    H = 0.5 * (H + jnp.swapaxes(H, 1, 2))
+    H = None
+    if with_H:
+        H = jnp.swapaxes(Yu, 1, 2) @ QYu + _block_diag(BH, N)
+        H = 0.5 * (H + jnp.swapaxes(H, 1, 2))
     E = jnp.einsum("jam,ja->jm", QYu, free)
     return _Costs(Yu, Q2, BH, H, E)
 
@@ -251,25 +254,30 @@ def _block_diag(B: Any, horizon: int) -> Any:
     return jnp.einsum("kl,jab->jkalb", eye, B).reshape(J, horizon * U, horizon * U)
 
 
-def _lowrank_inverse(c: _Costs, B: Any, horizon: int) -> Any:
-    """(Y_u' 2Qbar Y_u + I (x) B)^-1 by the Woodbury identity (batch over j).
+def _lowrank_parts(Yu: Any, Q2: Any, B: Any, horizon: int) -> tuple[Any, Any, Any]:
+    """(B^-1, W, P) of the Woodbury identity for (D + Y_u' Q2 Y_u)^-1, D = I (x) B.
 
-    With D = I (x) B, W = Y_u D^-1 and M = W Y_u' (r x r)::
+    With W = Y_u D^-1 and M = W Y_u' (r x r)::
 
-        (D + Y_u' Q2 Y_u)^-1 = D^-1 - W' Q2 (I + M Q2)^-1 W
+        (D + Y_u' Q2 Y_u)^-1 = D^-1 - W' P W,   P = Q2 (I + M Q2)^-1
 
     (valid for any positive semidefinite Q2, singular included). Only U x U and
     r x r systems are factorised, against n x n for the dense path: cheaper
     whenever an objective has fewer outputs than inputs (r < n).
     """
-    J, r, n = c.Yu.shape
+    J, r, n = Yu.shape
     U = B.shape[-1]
     Binv = _spd_inverse(B)
-    W = jnp.einsum("jskv,jvu->jsku", c.Yu.reshape(J, r, horizon, U), Binv).reshape(J, r, n)
-    M = W @ jnp.swapaxes(c.Yu, 1, 2)
-    S = jnp.eye(r, dtype=B.dtype) + c.Q2 @ M  # (I + M Q2)' = I + Q2 M
-    P = jnp.linalg.solve(S, c.Q2)  # (I + Q2 M)^-1 Q2 = Q2 (I + M Q2)^-1
-    P = 0.5 * (P + jnp.swapaxes(P, 1, 2))
+    W = jnp.einsum("jskv,jvu->jsku", Yu.reshape(J, r, horizon, U), Binv).reshape(J, r, n)
+    M = W @ jnp.swapaxes(Yu, 1, 2)
+    S = jnp.eye(r, dtype=B.dtype) + Q2 @ M  # (I + M Q2)' = I + Q2 M
+    P = jnp.linalg.solve(S, Q2)  # (I + Q2 M)^-1 Q2 = Q2 (I + M Q2)^-1
+    return Binv, W, 0.5 * (P + jnp.swapaxes(P, 1, 2))
+
+
+def _lowrank_inverse(c: _Costs, B: Any, horizon: int) -> Any:
+    """(Y_u' 2Qbar Y_u + I (x) B)^-1 by the Woodbury identity (:func:`_lowrank_parts`)."""
+    Binv, W, P = _lowrank_parts(c.Yu, c.Q2, B, horizon)
     inv = _block_diag(Binv, horizon) - jnp.swapaxes(W, 1, 2) @ P @ W
     return 0.5 * (inv + jnp.swapaxes(inv, 1, 2))
 
@@ -346,7 +354,7 @@ def _scaled_hessian(H: Any, Ain: Any, horizon: int) -> Any:
     return G if batched else G[0]
 
 
-def _power_rho(H: Any, Hinv: Any, Lam: Any, Laminv: Any, mask: Any, iterations: int) -> Any:
+def _power_rho(H: Any, Hinv: Any, LamB: Any, mask: Any, iterations: int) -> Any:
     """eq.opt_ro with mu_min, mu_max estimated by power iteration.
 
     mu are the eigenvalues of the pencil H x = mu Lambda x, Lambda = Abar'Abar
@@ -360,11 +368,18 @@ def _power_rho(H: Any, Hinv: Any, Lam: Any, Laminv: Any, mask: Any, iterations: 
     10 % of the exact eigendecomposition on the generated and the cruise
     problems (tests/test_formulations.py states the tolerance).
 
-    H, Hinv, Lam, Laminv : (J, n, n); mask : (J, n) 1 on real entries.
+    H, Hinv : (J, n, n); LamB : (J, U, U) the per-step block of Lambda;
+    mask : (J, n) 1 on real entries.
     """
     J, n, _ = H.shape
+    U = LamB.shape[-1]
+    N = n // U
     dt = H.dtype
-    M = jnp.stack([Laminv @ H, Hinv @ Lam], axis=1)  # (J, 2, n, n)
+    Lam = _block_diag(LamB, N)
+    # block-diagonal products, n^2 U instead of n^3
+    LiH = jnp.einsum("juv,jkvm->jkum", _spd_inverse(LamB), H.reshape(J, N, U, n))
+    HiL = jnp.einsum("jmkv,jvu->jmku", Hinv.reshape(J, n, N, U), LamB)
+    M = jnp.stack([LiH.reshape(J, n, n), HiL.reshape(J, n, n)], axis=1)  # (J, 2, n, n)
     v0 = np.random.default_rng(12345).uniform(0.5, 1.5, n)
     v = jnp.broadcast_to((jnp.asarray(v0, dt) * mask)[:, None, :], (J, 2, n))
 
@@ -376,6 +391,50 @@ def _power_rho(H: Any, Hinv: Any, Lam: Any, Laminv: Any, mask: Any, iterations: 
     num = jnp.einsum("jpa,jab,jpb->jp", v, H, v)
     den = jnp.einsum("jpa,jab,jpb->jp", v, Lam, v)
     rq = num / den
+    mu_max = jnp.maximum(rq[:, 0], rq[:, 1])
+    mu_min = jnp.maximum(jnp.minimum(rq[:, 0], rq[:, 1]), jnp.finfo(dt).eps * mu_max)
+    return jnp.sqrt(mu_min * mu_max)
+
+
+def _blocks(B: Any, x: Any) -> Any:
+    """(I (x) B_j) x for B (J, U, U) and x (J, p, n)."""
+    J, p, n = x.shape
+    U = B.shape[-1]
+    return jnp.einsum("juv,jpkv->jpku", B, x.reshape(J, p, n // U, U)).reshape(J, p, n)
+
+
+def _power_rho_lowrank(
+    c: _Costs, BH: Any, LamB: Any, mask: Any, iterations: int, horizon: int
+) -> Any:
+    """:func:`_power_rho` with H = Y_u' Q2 Y_u + I (x) BH and H^-1 applied in low-rank form.
+
+    Nothing n x n is formed: H x = (I (x) BH) x + Y_u'(Q2 (Y_u x)) and
+    H^-1 x = (I (x) BH^-1) x - W'(P (W x)) (:func:`_lowrank_parts`).
+    """
+    J, r, n = c.Yu.shape
+    dt = c.Yu.dtype
+    Binv, W, P = _lowrank_parts(c.Yu, c.Q2, BH, horizon)
+    Laminv = _spd_inverse(LamB)
+
+    def lowrank(L: Any, Mid: Any, R: Any, x: Any) -> Any:
+        y = jnp.einsum("jsn,jpn->jps", R, x)
+        y = jnp.einsum("jst,jpt->jps", Mid, y)
+        return jnp.einsum("jsn,jps->jpn", L, y)
+
+    def Hx(x: Any) -> Any:
+        return _blocks(BH, x) + lowrank(c.Yu, c.Q2, c.Yu, x)
+
+    def body(_: Any, v: Any) -> Any:
+        up = _blocks(Laminv, Hx(v[:, :1]))  # Lambda^-1 H v
+        lx = _blocks(LamB, v[:, 1:])
+        down = _blocks(Binv, lx) - lowrank(W, P, W, lx)  # H^-1 Lambda v
+        v = jnp.concatenate([up, down], axis=1)
+        return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
+
+    v0 = np.random.default_rng(12345).uniform(0.5, 1.5, n)
+    v = jnp.broadcast_to((jnp.asarray(v0, dt) * mask)[:, None, :], (J, 2, n))
+    v = jax.lax.fori_loop(0, iterations, body, v)
+    rq = jnp.sum(v * Hx(v), -1) / jnp.sum(v * _blocks(LamB, v), -1)
     mu_max = jnp.maximum(rq[:, 0], rq[:, 1])
     mu_min = jnp.maximum(jnp.minimum(rq[:, 0], rq[:, 1]), jnp.finfo(dt).eps * mu_max)
     return jnp.sqrt(mu_min * mu_max)
@@ -509,8 +568,9 @@ class LocalExplicit:
         J, U = lay.cols.shape
         C = lay.rows.shape[1]
         N = T.horizon
-        c = _padded_costs(T, data)
-        dt = c.H.dtype
+        need_H = not self.lowrank or self.rho_method == "eigh" or not all(lay.full)
+        c = _padded_costs(T, data, with_H=need_H)
+        dt = c.E.dtype
         Aix = jnp.pad(data.Ain, ((0, 1), (0, 1)))  # padded row / column index -> 0
         Ain = Aix[lay.rows[:, :, None], lay.cols[:, None, :]]  # (J, C, U)
         bx = jnp.pad(data.bin, ((0, 0), (0, 1)))
@@ -549,7 +609,7 @@ class LocalExplicit:
         J, U = lay.cols.shape
         N = T.horizon
         H = c.H
-        dt = H.dtype
+        dt = c.E.dtype
         full = np.asarray(lay.full)
         out = [None] * J
         if full.any():
@@ -564,20 +624,19 @@ class LocalExplicit:
                 # H may be singular (R_j = 0): a shift of eps * mean(diag H) keeps
                 # its inverse finite and mu_min at about the eps * mu_max floor
                 nj = jnp.asarray([N * u for u in lay.u_sizes], dt)
-                tr = jnp.einsum("jaa->j", H * mask[:, :, None]) / nj
-                delta = (jnp.finfo(dt).eps * tr)[:, None, None]
+                um = jnp.asarray(lay.umask, dt)
+                tr = jnp.sum(c.Yu * (c.Q2 @ c.Yu), axis=(1, 2)) + N * jnp.einsum(
+                    "jaa,ja->j", c.BH, um
+                )
+                delta = (jnp.finfo(dt).eps * tr / nj)[:, None, None]
                 if self.lowrank:
-                    Hinv = _lowrank_inverse(c, c.BH + delta * jnp.eye(U, dtype=dt), N)
+                    BHd = c.BH + delta * jnp.eye(U, dtype=dt)
+                    rho_full = _power_rho_lowrank(
+                        c, BHd, LamB, mask, self.rho_iterations, N
+                    )
                 else:
                     Hinv = _spd_inverse(H + delta * jnp.eye(N * U, dtype=dt))
-                rho_full = _power_rho(
-                    H,
-                    Hinv,
-                    _block_diag(LamB, N),
-                    _block_diag(_spd_inverse(LamB), N),
-                    mask,
-                    self.rho_iterations,
-                )
+                    rho_full = _power_rho(H, Hinv, LamB, mask, self.rho_iterations)
             else:
                 # exact: G = L^-1 H L^-T padded with the mean real eigenvalue
                 # (trace / n_j), which lies between the extreme ones and so leaves
