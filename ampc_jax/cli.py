@@ -64,6 +64,18 @@ def _positive(kind: type) -> Any:
     return parse
 
 
+def _scales(text: str) -> tuple[float, ...]:
+    try:
+        vals = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated positive numbers, got {text!r}"
+        ) from None
+    if not all(v > 0 and v < float("inf") for v in vals):
+        raise argparse.ArgumentTypeError(f"expected positive finite numbers, got {text!r}")
+    return vals
+
+
 def _warm_state(path: str, solver: Any, dt: Any) -> Any:
     """Read a previous ``--json`` output's ``warm_state`` and shift it one step."""
     import jax.numpy as jnp
@@ -142,7 +154,17 @@ def cmd_solve(args: argparse.Namespace) -> int:
         tol = args.tol
         compile_s = 0.0
         if args.formulation == "local_explicit":
-            solver = LocalExplicit(T, max_iter=args.max_iter, tol_primal=tol, tol_dual=tol)
+            try:
+                solver = LocalExplicit(
+                    T,
+                    max_iter=args.max_iter,
+                    tol_primal=tol,
+                    tol_dual=tol,
+                    rho_scale=args.rho_scale,
+                    relaxation=args.relaxation,
+                )
+            except ValueError as e:
+                return _fail(str(e))
             rho = None if args.rho is None else jnp.full((T.n_objectives,), args.rho, dtype)
             warm = None
             if args.warm_start:
@@ -159,7 +181,20 @@ def cmd_solve(args: argparse.Namespace) -> int:
             if args.warm_start:
                 return _fail("--warm-start applies to --formulation local_explicit only")
             if args.solver == "jax":
-                solver = IntegratedADMM(T, max_iter=args.max_iter, tol_primal=tol, tol_dual=tol)
+                if len(args.rho_scale) != 1:
+                    return _fail("rho_scale: the integrated problem has one objective; give one value")
+                try:
+                    solver = IntegratedADMM(
+                        T,
+                        max_iter=args.max_iter,
+                        tol_primal=tol,
+                        tol_dual=tol,
+                        rho_scale=args.rho_scale[0],
+                        relaxation=args.relaxation,
+                    )
+                    _ = solver.inner  # validates the settings
+                except ValueError as e:
+                    return _fail(str(e))
                 rho = None if args.rho is None else jnp.asarray([args.rho], dtype)
                 fn = jax.jit(solver.solve)
                 t0 = time.perf_counter()
@@ -241,6 +276,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rho", type=_parse_rho, default=None, help="'auto' (eq.opt_ro) or a value")
     p.add_argument(
         "--tol", type=_positive(float), default=1e-6, help="eps_r = eps_s (squared norms)"
+    )
+    p.add_argument(
+        "--rho-scale",
+        type=_scales,
+        default=(1.0,),
+        help="factor(s) on eq.opt_ro's rho*: one value, or one per objective comma-separated",
+    )
+    p.add_argument(
+        "--relaxation",
+        type=float,
+        default=1.0,
+        help="ADMM over-relaxation alpha in (0, 2); 1 = the paper's iteration",
     )
     p.add_argument("--max-iter", type=_positive(int), default=1000)
     p.add_argument(

@@ -9,7 +9,7 @@ equalities with a shared non-negative slack Z (eq.integMPC_F3)::
 and consensus ADMM iterates, per objective j and constraint row c:
 
 * local update (eq.F3_primal), a closed-form solve with a matrix factorised
-  once per control step (the setup stores K_j^-1 E_j and K_j^-1 Abar_j', so an
+  once per control step (the setup stores K_j^-1 and K_j^-1 E_j, so an
   iteration is a few small matrix-vector products)::
 
       U_j = -(H_j + rho_j Abar_j' Abar_j)^-1 [E_j + Abar_j' (rho_j (Z_j - bbar_j) + gamma_j)]
@@ -37,10 +37,20 @@ Objective j carries the constraint rows whose agents all lie in S_j
 (:meth:`Topology.group_rows`); a shared agent's box rows are shared by all its
 objectives, which is what makes their copies agree (NOTES item 10).
 
-The default rho_j is eq.opt_ro (:func:`optimal_rho`).
+The default rho_j is eq.opt_ro (:func:`optimal_rho`), its extreme eigenvalues
+estimated by power iteration (:func:`_power_rho`; ``rho_method="eigh"`` for the
+exact form), optionally scaled (``rho_scale``).
+
+Implementation: the objectives are stacked on a leading axis and padded to
+common sizes, so every per-objective operation is one batched call (one
+factorisation, one matrix-vector product per iteration for all objectives).
+When every objective has fewer outputs than inputs per step (the vehicle
+examples: one output, three or four inputs), K_j^-1 comes from the Woodbury
+identity through the N_p n_y,j outputs (:func:`_lowrank_parts`) instead of an
+N_p n_u,j Cholesky factorisation.
 
 Everything here handles one problem; batch with ``jax.vmap`` over
-:class:`~ampc_jax.topology.ProblemData` (see :mod:`ampc_jax.batch`).
+:class:`~ampc_jax.topology.ProblemData`.
 """
 
 from __future__ import annotations
@@ -566,7 +576,6 @@ class LocalExplicit:
         T = self.topology
         lay = _layout(T)
         J, U = lay.cols.shape
-        C = lay.rows.shape[1]
         N = T.horizon
         need_H = not self.lowrank or self.rho_method == "eigh" or not all(lay.full)
         c = _padded_costs(T, data, with_H=need_H)
