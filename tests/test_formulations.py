@@ -72,6 +72,29 @@ def test_lowrank_and_dense_setups_agree():
     np.testing.assert_allclose(lo.KE, de.KE, rtol=1e-7, atol=1e-9 * np.abs(de.KE).max())
 
 
+@pytest.mark.parametrize("relaxation", [1.6, 0.8])
+def test_rho_scale_and_relaxation_keep_the_optimum(relaxation):
+    problems = [random_problem(seed, 3, shared="both") for seed in range(6)]
+    solver = LocalExplicit(
+        problems[0].topology, rho_scale=(1.0, 0.3, 3.0), relaxation=relaxation, **TIGHT
+    )
+    compare_batch(problems, solver)
+
+
+def test_bad_solver_settings_name_the_field():
+    T = random_problem(0, 2).topology
+    for kwargs, field in [
+        ({"rho_scale": (1.0, 2.0, 3.0)}, "rho_scale"),
+        ({"rho_scale": -1.0}, "rho_scale"),
+        ({"relaxation": 2.0}, "relaxation"),
+        ({"rho_method": "lanczos"}, "rho_method"),
+        ({"factorisation": "qr"}, "factorisation"),
+        ({"rho_iterations": 0}, "rho_iterations"),
+    ]:
+        with pytest.raises(ValueError, match=field):
+            LocalExplicit(T, **kwargs)
+
+
 def test_unequal_given_rho_still_exact():
     """NOTES item 14: with rho_j differing 50x the rho-weighted global step stays exact."""
     problems = [random_problem(seed, 2, shared="all") for seed in range(6)]
