@@ -231,7 +231,9 @@ def stack_scenarios(specs: list[ScenarioSpec] | tuple[ScenarioSpec, ...]) -> Sce
 
     NumPy arrays in, NumPy arrays out (dtype kept; see the module docstring).
     """
-    return jax.tree.map(lambda *x: np.stack([np.asarray(a) for a in x]), *[s.scenario for s in specs])
+    return jax.tree.map(
+        lambda *x: np.stack([np.asarray(a) for a in x]), *[s.scenario for s in specs]
+    )
 
 
 def _cruise_lane_change() -> ScenarioSpec:

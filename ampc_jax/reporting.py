@@ -156,6 +156,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             tol_primal=args.tol_primal,
             tol_dual=args.tol_dual,
             max_iter=args.max_iter,
+            rho_scale=_parse_floats("--rho-scale", args.rho_scale),
+            relaxation=args.relaxation,
+            integrated_rho_scale=args.integrated_rho_scale,
         )
         if args.set:
             cfg = with_settings(cfg, **_parse_settings(args.set, cfg.settings))
@@ -192,6 +195,19 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _parse_floats(flag: str, text: str | None) -> float | tuple[float, ...] | None:
+    """``"0.5"`` -> 0.5, ``"1,0.5"`` -> (1.0, 0.5); None stays None (the example's default)."""
+    if text is None:
+        return None
+    try:
+        vals = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise ValueError(
+            f"{flag} {text}: expected a number or comma-separated numbers (one per objective)"
+        ) from None
+    return vals[0] if len(vals) == 1 else vals
+
+
 def _parse_settings(items: list[str], settings: Any) -> dict[str, Any]:
     """``--set horizon=2 --set q_yrt=1e4`` -> fields of the example's settings."""
     out: dict[str, Any] = {}
@@ -220,6 +236,12 @@ def _summary(m: dict[str, Any]) -> None:
         f"{m['scenario']} [{m['formulation']}; {'+'.join(m['objectives']) or 'none'}; "
         f"N_p={m['horizon']}; {'warm' if m['warm_start'] else 'cold'} start]"
     )
+    if m["formulation"] != "none":
+        print(
+            f"  solver          eps_r {m['tol_primal']:g}, eps_s {m['tol_dual']:g}, "
+            f"relaxation {m['relaxation']:g}, rho_scale {m['rho_scale']}, "
+            f"integrated_rho_scale {m['integrated_rho_scale']:g}"
+        )
     if m["formulation"] != "none":
         print(
             f"  e_sub (Nm)      p50 {f('e_sub_p50')}  p95 {f('e_sub_p95')}  max {f('e_sub_max')}"
@@ -308,6 +330,26 @@ def add_cli_commands(sub: Any) -> None:
     p.add_argument("--tol-primal", type=float, default=None, help="eps_r (squared, Nm^2)")
     p.add_argument("--tol-dual", type=float, default=None, help="eps_s (squared)")
     p.add_argument("--max-iter", type=int, default=None, help="controller iteration cap")
+    p.add_argument(
+        "--rho-scale",
+        default=None,
+        metavar="S[,S]",
+        help="factor(s) on eq.opt_ro's rho* for Local Explicit: one, or one per objective "
+        "of the example (LST,YRT or VSC,WSC); default: the example's tuned value",
+    )
+    p.add_argument(
+        "--relaxation",
+        type=float,
+        default=None,
+        help="ADMM over-relaxation in (0, 2) for Local Explicit and the integrated MPC "
+        "(1 = the paper); default: the example's tuned value",
+    )
+    p.add_argument(
+        "--integrated-rho-scale",
+        type=float,
+        default=None,
+        help="factor on rho* of the IntegratedADMM (controller and r_time replay)",
+    )
     p.add_argument(
         "--set",
         action="append",

@@ -146,3 +146,26 @@ def test_make_scenario_float32_driver():
     assert steer.dtype == T.dtype == v_ref.dtype == jnp.float32
     assert float(v_ref) == pytest.approx(12.5)
     assert float(T) == pytest.approx(500.0 * 2.5)
+
+
+def test_scenarios_are_float64_numpy_whatever_x64_at_import():
+    for spec in SCENARIOS.values():
+        for leaf in jax.tree.leaves(spec.scenario):
+            assert isinstance(leaf, np.ndarray) and leaf.dtype == np.float64
+    assert float(SCENARIOS["stability_launch_brake"].scenario.mu) == 0.3
+    # imported with x64 off, enabled afterwards (what the CLI does): still exact
+    import subprocess
+    import sys
+
+    code = (
+        "import ampc_jax.manoeuvres as m, jax, numpy as np\n"
+        "jax.config.update('jax_enable_x64', True)\n"
+        "sc = m.SCENARIOS['stability_launch_brake'].scenario\n"
+        "assert sc.mu.dtype == np.float64 and float(sc.mu) == 0.3, sc.mu\n"
+        "import jax.numpy as jnp\n"
+        "assert jnp.asarray(sc.mu).dtype == jnp.float64\n"
+        "b = m.stack_scenarios(list(m.SCENARIOS.values()))\n"
+        "assert b.mu.dtype == np.float64 and float(b.mu[1]) == 0.3\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr

@@ -10,11 +10,16 @@ import pytest
 from ampc_jax.cli import main
 from ampc_jax.integrated import solve_reference
 from ampc_jax.simulation import (
+    CONTROLLER_DEFAULTS,
     SimConfig,
+    Simulator,
     build_topology,
     config_for,
+    integrated_solver,
+    local_explicit_solver,
     simulate,
 )
+from ampc_jax.vehicle import CruiseSettings, StabilitySettings
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -171,3 +176,81 @@ def test_walkthrough_notebook_executes():
         o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
     )
     assert "e_sub_p95" in text and "yaw_rms_focus" in text
+
+
+# --------------------------------------------------------------------------- solver options
+@pytest.mark.parametrize(
+    ("kw", "field"),
+    [
+        ({"rho_scale": (1.0, 2.0, 3.0)}, "rho_scale"),
+        ({"rho_scale": ()}, "rho_scale"),
+        ({"rho_scale": -1.0}, "rho_scale"),
+        ({"rho_scale": (1.0, float("nan"))}, "rho_scale"),
+        ({"rho_scale": "fast"}, "rho_scale"),
+        ({"relaxation": 2.0}, "relaxation"),
+        ({"relaxation": 0.0}, "relaxation"),
+        ({"relaxation": "1.5"}, "relaxation"),
+        ({"integrated_rho_scale": 0.0}, "integrated_rho_scale"),
+        ({"integrated_rho_scale": (1.0, 1.0)}, "integrated_rho_scale"),
+        ({"shadow_rho_scale": float("inf")}, "shadow_rho_scale"),
+        ({"shadow_relaxation": 2.5}, "shadow_relaxation"),
+    ],
+)
+def test_solver_options_are_validated(kw, field):
+    with pytest.raises(ValueError, match=rf"^{field}: "):
+        SimConfig("cruise", **kw)
+
+
+def test_solver_options_defaults_and_pass_through():
+    for name, example in (("cruise_lane_change", "cruise"), ("stability_dlc", "stability")):
+        d = CONTROLLER_DEFAULTS[example]
+        c = config_for(name)
+        assert c.rho_scale == tuple(d["rho_scale"]) and c.relaxation == d["relaxation"]
+        assert c.integrated_rho_scale == d["integrated_rho_scale"]
+        assert hash(c) == hash(config_for(name))  # still a static jit argument
+        T = build_topology(c)[0]
+        le = Simulator(c).controller()
+        assert le.rho_scale == c.rho_scale and le.relaxation == c.relaxation
+        ia = integrated_solver(c, T)
+        assert ia.rho_scale == c.integrated_rho_scale and ia.relaxation == c.relaxation
+        assert (ia.tol_primal, ia.tol_dual) == (le.tol_primal, le.tol_dual)
+        sh = Simulator(c).shadow_solver()
+        assert sh.rho_scale == c.shadow_rho_scale and sh.relaxation == c.shadow_relaxation
+        ctrl = Simulator(config_for(name, formulation="integrated")).controller()
+        assert ctrl.rho_scale == c.integrated_rho_scale and ctrl.relaxation == c.relaxation
+    # --disable keeps the enabled objectives' factors
+    lst = config_for("cruise_lane_change", disabled=("YRT",), rho_scale=(0.7, 0.3))
+    assert lst.enabled_rho_scale == 0.7
+    assert local_explicit_solver(lst, build_topology(lst)[0]).rho_scale == 0.7
+    wsc = config_for("stability_dlc", disabled=("VSC",), rho_scale=(0.7, 0.3))
+    assert wsc.enabled_rho_scale == 0.3
+    # one float applies to every objective; the paper's solver is rho* and alpha = 1
+    one = SimConfig("stability", rho_scale=2, relaxation=1)
+    assert one.rho_scale == 2.0 and one.enabled_rho_scale == 2.0
+    assert isinstance(one.relaxation, float)
+
+
+def test_metrics_record_solver_options(cruise_run):
+    m = cruise_run.metrics()
+    c = cruise_run.config
+    assert m["rho_scale"] == list(c.rho_scale) and m["relaxation"] == c.relaxation
+    assert m["integrated_rho_scale"] == c.integrated_rho_scale
+
+
+def test_cli_rejects_bad_solver_options(capsys):
+    base = ["simulate", "cruise_lane_change", "--out", "x", "--quiet"]
+    assert main([*base, "--rho-scale", "1,2,3"]) == 2
+    assert "rho_scale" in capsys.readouterr().err
+    assert main([*base, "--rho-scale", "1,x"]) == 2
+    assert "--rho-scale" in capsys.readouterr().err
+    assert main([*base, "--relaxation", "2"]) == 2
+    assert "relaxation" in capsys.readouterr().err
+
+
+def test_tuned_settings_are_the_defaults():
+    """One source of truth: the scenarios run vehicle.py's default settings."""
+    assert CruiseSettings().horizon == 2 and CruiseSettings().q_yrt == 1.0e4
+    assert StabilitySettings().horizon == 3
+    assert config_for("cruise_lane_change").settings == CruiseSettings()
+    assert config_for("stability_launch_brake").settings == StabilitySettings()
+    assert config_for("stability_dlc").settings == StabilitySettings()
