@@ -251,7 +251,10 @@ def sweep_example(example: str, args: argparse.Namespace) -> dict[str, Any]:
     print(f"\n### {example}: shadow IntegratedADMM at 1e-8 Nm^2\n")
     print(
         "| alpha | rho scale | "
-        + " | ".join(f"{n}: it p50 / p95 / max, not solved, max |u - u_logged| (Nm)" for n in names)
+        + " | ".join(
+            f"{n}: it p50 / p95 / max, not solved, max deviation from the logged shadow (Nm)"
+            for n in names
+        )
         + " |"
     )
     print("| --- | --- | " + " | ".join("---" for _ in names) + " |")
@@ -331,10 +334,10 @@ def cmd_table(args: argparse.Namespace) -> int:
         return 1
     print(
         "| run | objectives | tol | alpha / rho scale (LE; int.) | e_sub p95 / max (Nm) | "
-        "iterations p50 / p95 / max | r_time median / p95 | yaw rms whole / focus (rad/s) | "
-        "rear abs slip max / p95 | x real time |"
+        "iterations p50 / p95 / max | r_time median / p95 | t_LE / t_int median (us) | "
+        "yaw rms whole / focus (rad/s) | rear abs slip max / p95 | x real time |"
     )
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for name, m in runs:
         active = m["formulation"] != "none"
         objs = "+".join(m["objectives"]) if active else "driver alone"
@@ -350,6 +353,7 @@ def cmd_table(args: argparse.Namespace) -> int:
             f"{_g(m, 'iterations_p50', 'g')} / {_g(m, 'iterations_p95', 'g')} / "
             f"{_g(m, 'iterations_max', 'g')} | "
             f"{_g(m, 'r_time_median')} / {_g(m, 'r_time_p95')} | "
+            f"{_g(m, 't_distributed_median_us', '.0f')} / {_g(m, 't_integrated_median_us', '.0f')} | "
             f"{_g(m, 'yaw_rms', '.4f')} / {_g(m, 'yaw_rms_focus', '.4f')} | "
             f"{_g(m, 'rear_slip_abs_max')} / {_g(m, 'rear_slip_abs_p95')} | "
             f"{_g(m, 'realtime_factor', '.0f')} |"
