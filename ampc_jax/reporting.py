@@ -237,10 +237,14 @@ def _summary(m: dict[str, Any]) -> None:
         f"N_p={m['horizon']}; {'warm' if m['warm_start'] else 'cold'} start]"
     )
     if m["formulation"] != "none":
+        scales = (
+            f"rho_scale {m['integrated_rho_scale']:g} (integrated)"
+            if m["formulation"] == "integrated"
+            else f"rho_scale {m['rho_scale']}, integrated_rho_scale {m['integrated_rho_scale']:g}"
+        )
         print(
             f"  solver          eps_r {m['tol_primal']:g}, eps_s {m['tol_dual']:g}, "
-            f"relaxation {m['relaxation']:g}, rho_scale {m['rho_scale']}, "
-            f"integrated_rho_scale {m['integrated_rho_scale']:g}"
+            f"relaxation {m['relaxation']:g}, {scales}"
         )
     if m["formulation"] != "none":
         print(
