@@ -431,6 +431,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--only", choices=("latency", "throughput"), help="run one of the two parts"
     )
+    ap.add_argument("--horizons", default="10,20", help="comma-separated N_p values")
+    ap.add_argument("--dtypes", default="float64,float32", help="throughput dtypes")
     args = ap.parse_args(argv)
     if args.tune:
         for horizon in (10, 20):
@@ -448,7 +450,9 @@ def main(argv: list[str] | None = None) -> int:
     }
     print(f"jax {jax.__version__} on {jax.devices()}; tolerance eps_r = eps_s = {TOL}")
     print(f"configurations: {CONFIGS}")
-    for horizon in (10, 20) if args.only != "throughput" else ():
+    horizons = [int(h) for h in args.horizons.split(",")]
+    dtypes = args.dtypes.split(",")
+    for horizon in horizons if args.only != "throughput" else ():
         for config in CONFIGS:
             lat = latency(horizon, steps, config)
             results["latency"].append(lat)
@@ -467,8 +471,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"OSQP {lat['max_u0_err_osqp_Nm']:.2e} Nm; compile {lat['jax_compile_s']:.2f} s",
                 flush=True,
             )
-    for dtype in ("float64", "float32") if args.only != "latency" else ():
-        for horizon in (10, 20):
+    for dtype in dtypes if args.only != "latency" else ():
+        for horizon in horizons:
             thr = throughput(
                 horizon, sizes, args.chunk, 5 if args.quick else 20, 9, dtype=dtype,
                 vmap_chunk=args.vmap_chunk,
@@ -483,6 +487,8 @@ def main(argv: list[str] | None = None) -> int:
                 flush=True,
             )
     suffix = f"_{args.only}" if args.only else ""
+    if args.horizons != "10,20" or args.dtypes != "float64,float32":
+        suffix += "_" + args.horizons.replace(",", "-") + "_" + args.dtypes.replace(",", "-")
     path = Path(__file__).with_name(f"results_local_explicit{suffix}.json")
     path.write_text(json.dumps(results, indent=1, default=str))
     print(f"wrote {path}")
