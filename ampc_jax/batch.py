@@ -12,6 +12,11 @@ its own share). On CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=N``
 Measured on the cruise-control benchmark (``bench/bench_local_explicit.py``):
 chunks of 16 to 64 ran 2.5x faster than one ``vmap`` of 1,024 drives on one
 core.
+
+Caution (README, "Known issues"): on the 2-core test machine, sharding over two
+forced CPU devices hung (XLA:CPU deadlock) in 2 of 2 runs of the N_p = 20
+benchmark at batch 100, while N_p = 10 ran to 100,000; one device never hung.
+Run long sharded jobs under a timeout.
 """
 
 from __future__ import annotations
