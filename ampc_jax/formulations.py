@@ -487,8 +487,9 @@ class LocalExplicit:
         while Z still moves by newtons, and the solver stops far from the
         optimum. ``SolveResult.dual_residual`` reports the tested quantity.
     rho_method : how eq.opt_ro's extreme eigenvalues are found when rho is not
-        given. ``"power"`` (default): power iteration on G_j and G_j^-1
-        (``rho_iterations`` steps, see :func:`_power_rho`); ``"eigh"``: the
+        given. ``"power"`` (default): power iteration on the pencil
+        (H_j, Abar_j'Abar_j) and its inverse (``rho_iterations`` steps, see
+        :func:`_power_rho`, :func:`_power_rho_lowrank`); ``"eigh"``: the
         exact eigendecomposition (:func:`optimal_rho`), several times slower on
         XLA:CPU (LAPACK eigensolvers dominate a small step). Objectives whose
         rows A_in,j are column-rank deficient always use the exact form.
@@ -496,8 +497,10 @@ class LocalExplicit:
     rho_scale : factor(s) on eq.opt_ro's rho_j (a float, or one per objective),
         used when no rho is given. eq.opt_ro minimises a bound on the linear
         convergence rate, not the iteration count; on the cruise example the
-        fewest iterations come at about (1, 0.1) x rho* (``bench/bench_rho.py``
-        sweeps it). Scaling rho* keeps it following the operating point.
+        fewest iterations come at about (1, 0.1) x rho* (``python
+        bench/bench_local_explicit.py --tune`` sweeps it; the closed loop's own
+        choices are in ``simulation.CONTROLLER_DEFAULTS``). Scaling rho* keeps
+        it following the operating point.
     relaxation : over-relaxation factor alpha of the global and dual steps
         (Boyd et al. 2011, sec. 3.4.3): Abar_j U_j is replaced there by
         alpha Abar_j U_j + (1 - alpha)(bbar_j - Z_j^(q-1)). 1.0 (default) is
