@@ -364,6 +364,14 @@ def _scaled_hessian(H: Any, Ain: Any, horizon: int) -> Any:
     return G if batched else G[0]
 
 
+def _rho_from_quotients(rq: Any) -> Any:
+    """sqrt(mu_min mu_max) from the two chains' Rayleigh quotients (J, 2), mu_min
+    floored at eps mu_max (a singular H_j)."""
+    mu_max = jnp.maximum(rq[:, 0], rq[:, 1])
+    mu_min = jnp.maximum(jnp.minimum(rq[:, 0], rq[:, 1]), jnp.finfo(rq.dtype).eps * mu_max)
+    return jnp.sqrt(mu_min * mu_max)
+
+
 def _power_rho(H: Any, Hinv: Any, LamB: Any, mask: Any, iterations: int) -> Any:
     """eq.opt_ro with mu_min, mu_max estimated by power iteration.
 
@@ -401,9 +409,7 @@ def _power_rho(H: Any, Hinv: Any, LamB: Any, mask: Any, iterations: int) -> Any:
     num = jnp.einsum("jpa,jab,jpb->jp", v, H, v)
     den = jnp.einsum("jpa,jab,jpb->jp", v, Lam, v)
     rq = num / den
-    mu_max = jnp.maximum(rq[:, 0], rq[:, 1])
-    mu_min = jnp.maximum(jnp.minimum(rq[:, 0], rq[:, 1]), jnp.finfo(dt).eps * mu_max)
-    return jnp.sqrt(mu_min * mu_max)
+    return _rho_from_quotients(rq)
 
 
 def _blocks(B: Any, x: Any) -> Any:
@@ -445,9 +451,7 @@ def _power_rho_lowrank(
     v = jnp.broadcast_to((jnp.asarray(v0, dt) * mask)[:, None, :], (J, 2, n))
     v = jax.lax.fori_loop(0, iterations, body, v)
     rq = jnp.sum(v * Hx(v), -1) / jnp.sum(v * _blocks(LamB, v), -1)
-    mu_max = jnp.maximum(rq[:, 0], rq[:, 1])
-    mu_min = jnp.maximum(jnp.minimum(rq[:, 0], rq[:, 1]), jnp.finfo(dt).eps * mu_max)
-    return jnp.sqrt(mu_min * mu_max)
+    return _rho_from_quotients(rq)
 
 
 def shift_state(state: ADMMState) -> ADMMState:
