@@ -64,7 +64,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
 
-from .prediction import matrix_powers
+from .prediction import _block_toeplitz, matrix_powers
 from .results import SolveResult
 from .topology import ProblemData, Topology
 
@@ -240,13 +240,11 @@ def _padded_costs(topology: Topology, data: ProblemData, with_H: bool = True) ->
     Rj = Rx[lay.cols[:, :, None], lay.cols[:, None, :]] * jnp.asarray(lay.scale, dt)[:, :, None]
     BH = 2.0 * Rj + jnp.asarray(np.eye(U)[None] * (1.0 - lay.umask)[:, :, None], dt)
     Pw = matrix_powers(data.A, N)  # A^0..A^N
-    k = np.arange(N)
-    sel = jnp.asarray((k[:, None, None] - k[None, :, None] == k[None, None, :]), dt)
     # free response x^(k+1) = A^(k+1) x0 + sum_{l<=k} A^(k-l) w_l
-    xf = Pw[1:] @ data.x0 + jnp.einsum("kld,dxz,lz->kx", sel, Pw[:N], data.w)
+    xf = Pw[1:] @ data.x0 + (_block_toeplitz(Pw[:N], N) @ data.w.reshape(-1)).reshape(N, -1)
     free = (jnp.einsum("jyx,kx->jky", Cp, xf) - refp).reshape(J, N * Y)
     CPB = jnp.einsum("jyx,kxz,jzu->jkyu", Cp, Pw[:N], Bj)  # C_j A^k B_j
-    Yu = jnp.einsum("kld,jdyu->jkylu", sel, CPB).reshape(J, N * Y, N * U)
+    Yu = jax.vmap(_block_toeplitz, in_axes=(0, None))(CPB, N)  # (J, N Y, N U)
     Q2 = 2.0 * jnp.einsum("kl,jab->jkalb", jnp.eye(N, dtype=dt), Qp).reshape(J, N * Y, N * Y)
     QYu = Q2 @ Yu
     H = None
@@ -333,7 +331,7 @@ def optimal_rho(H: Any, Ain: Any, horizon: int, rank: int | None = None) -> Any:
     n = H.shape[0]
     AtA = Ain.T @ Ain
     if rank is None:
-        G = _scaled_hessian(H, Ain, horizon)
+        G = _scaled_hessian(H, AtA, horizon)
         mu = jnp.linalg.eigvalsh(0.5 * (G + G.T))
         mu_min = jnp.maximum(mu[0], jnp.finfo(H.dtype).eps * mu[-1])
         return jnp.sqrt(mu_min * mu[-1])
@@ -346,18 +344,17 @@ def optimal_rho(H: Any, Ain: Any, horizon: int, rank: int | None = None) -> Any:
     return 1.0 / jnp.sqrt(lam[n - nonzero] * lam[-1])
 
 
-def _scaled_hessian(H: Any, Ain: Any, horizon: int) -> Any:
+def _scaled_hessian(H: Any, AtA: Any, horizon: int) -> Any:
     """L^-1 H L^-T with L = I (x) chol(A_in' A_in) (see :func:`optimal_rho`).
 
-    Works on one (n, n) H or a batch (J, n, n) with (J, C, U) rows.
+    Works on one (n, n) H with (U, U) A_in'A_in, or a batch (J, n, n), (J, U, U).
     """
     batched = H.ndim == 3
     Hb = H if batched else H[None]
-    Ab = Ain if batched else Ain[None]
+    Ab = AtA if batched else AtA[None]
     J, n = Hb.shape[0], Hb.shape[1]
     nu = n // horizon
-    AtA = jnp.einsum("jcu,jcv->juv", Ab, Ab)
-    La = jnp.linalg.cholesky(AtA)
+    La = jnp.linalg.cholesky(Ab)
     Li = jsl.solve_triangular(La, _eye_like(nu, H.dtype, J), lower=True)
     G = jnp.einsum("jab,jkblc,jdc->jkald", Li, Hb.reshape(J, horizon, nu, horizon, nu), Li)
     G = G.reshape(J, n, n)
@@ -657,10 +654,7 @@ class LocalExplicit:
                 # exact: G = L^-1 H L^-T padded with the mean real eigenvalue
                 # (trace / n_j), which lies between the extreme ones and so leaves
                 # mu_min, mu_max unchanged
-                La = jnp.linalg.cholesky(LamB)
-                Li = jsl.solve_triangular(La, _eye_like(U, dt, J), lower=True)
-                G = jnp.einsum("jab,jkblc,jdc->jkald", Li, H.reshape(J, N, U, N, U), Li)
-                G = G.reshape(J, N * U, N * U)
+                G = _scaled_hessian(H, LamB, N)
                 G = 0.5 * (G + jnp.swapaxes(G, 1, 2))
                 nj = jnp.asarray([N * u for u in lay.u_sizes], dt)
                 mean = jnp.einsum("jaa->j", G * mask[:, :, None]) / nj
