@@ -190,29 +190,124 @@ def _eye_like(n: int, dtype: Any, batch: int) -> Any:
     return jnp.broadcast_to(jnp.eye(n, dtype=dtype), (batch, n, n))
 
 
-def _spd_inverse(M: Any) -> Any:
-    """Inverse of a batch (J, n, n) of symmetric positive definite matrices.
+def _lapack_spd_inverse(M: Any) -> Any:
+    """Inverse of a batch (..., n, n) of SPD matrices through LAPACK.
 
     M = L L' (Cholesky), M^-1 = L^-T L^-1: one triangular solve and one product,
     half the triangular work of ``cho_solve`` with an identity right-hand side.
     """
     L = jnp.linalg.cholesky(M)
-    Li = jax.lax.linalg.triangular_solve(
-        L, _eye_like(M.shape[-1], M.dtype, M.shape[0]), left_side=True, lower=True
-    )
-    return jnp.einsum("jka,jkb->jab", Li, Li)
+    eye = jnp.broadcast_to(jnp.eye(M.shape[-1], dtype=M.dtype), M.shape)
+    Li = jax.lax.linalg.triangular_solve(L, eye, left_side=True, lower=True)
+    return jnp.einsum("...ka,...kb->...ab", Li, Li)
+
+
+def _sweep_inverse(M: Any) -> Any:
+    """Inverse of a batch (..., n, n) of SPD matrices by n symmetric sweeps, pure JAX.
+
+    Sweeping pivot k (Gauss-Jordan elimination without pivoting, stable for
+    SPD matrices: the pivots are the positive Schur complements) maps A to
+    B with B_kk = -1/d, B_ik = B_ki = A_ik/d and B_ij = A_ij - A_ik A_kj/d,
+    d = A_kk; after all n pivots B = -M^-1. Each sweep is one elementwise
+    pass, vectorised over the batch; no LAPACK call (see :func:`_spd_inverse`).
+    """
+    n = M.shape[-1]
+    eye = jnp.eye(n, dtype=M.dtype)
+
+    def sweep(k: Any, A: Any) -> Any:
+        col = jax.lax.dynamic_index_in_dim(A, k, axis=-1, keepdims=False)  # A[..., :, k]
+        e = jax.lax.dynamic_index_in_dim(eye, k, axis=0, keepdims=False)
+        d = jnp.sum(col * e, axis=-1, keepdims=True)
+        v = col / d
+        new = v - e * (1.0 + 1.0 / d)  # column k of B
+        B = A - d[..., None] * v[..., :, None] * v[..., None, :]
+        B = jnp.where(e[:, None] > 0.5, new[..., None, :], B)  # row k
+        return jnp.where(e[None, :] > 0.5, new[..., :, None], B)  # column k
+
+    return -jax.lax.fori_loop(0, n, sweep, M)
+
+
+# Up to this size the sweeps are at least as fast as LAPACK for one problem
+# (measured: n = 4 faster, n = 10 equal, n = 20 1.6x slower on XLA:CPU).
+_SWEEP_MAX = 12
+
+
+@jax.custom_batching.custom_vmap
+def _spd_inverse_impl(M: Any) -> Any:
+    if M.shape[-1] <= _SWEEP_MAX:
+        return _sweep_inverse(M)
+    return _lapack_spd_inverse(M)
+
+
+@_spd_inverse_impl.def_vmap
+def _spd_inverse_batched(axis_size: int, in_batched: Any, M: Any) -> tuple[Any, bool]:
+    # Batched (vmap over scenarios): always the sweeps. XLA:CPU's batched LAPACK
+    # kernels fan their batch out into the intra-op thread pool they run on and
+    # wait for it, which deadlocks once every pool thread runs such a kernel
+    # (two CPU devices sharding a batch on two cores: ampc_jax.batch).
+    (batched,) = in_batched
+    if not batched:
+        return _spd_inverse_impl(M), False
+    return _sweep_inverse(M), True
+
+
+@jax.custom_vjp
+def _spd_inverse(M: Any) -> Any:
+    """Inverse of a batch (..., n, n) of symmetric positive definite matrices.
+
+    Small matrices (n <= 12) and every vmapped batch use symmetric sweeps in
+    pure JAX (:func:`_sweep_inverse`); a single larger problem uses LAPACK
+    (:func:`_lapack_spd_inverse`). Reverse-mode derivative d(M^-1) = -M^-1 dM M^-1.
+    """
+    return _spd_inverse_impl(M)
+
+
+def _spd_inverse_fwd(M: Any) -> tuple[Any, Any]:
+    X = _spd_inverse_impl(M)
+    return X, X
+
+
+def _spd_inverse_bwd(X: Any, g: Any) -> tuple[Any]:
+    Xt = jnp.swapaxes(X, -1, -2)
+    return (-(Xt @ g @ Xt),)
+
+
+_spd_inverse.defvjp(_spd_inverse_fwd, _spd_inverse_bwd)
+
+
+def _small_cholesky(A: Any) -> Any:
+    """Lower factor L, L L' = A, of a batch (..., m, m) of small positive
+    semidefinite matrices (m static and small), unrolled in pure JAX.
+
+    A zero pivot (a semidefinite A, e.g. a padded output with zero weight)
+    gives a zero column instead of a division by zero.
+    """
+    m = A.shape[-1]
+    cols = []
+    for k in range(m):
+        a = A[..., :, k]
+        for c in cols:
+            a = a - c * c[..., k : k + 1]
+        piv = a[..., k : k + 1]
+        d = jnp.sqrt(jnp.maximum(piv, 0.0))
+        safe = jnp.where(d > 0, d, 1.0)
+        mask = jnp.asarray(np.arange(m) >= k, A.dtype)
+        cols.append(jnp.where(d > 0, a / safe, 0.0) * mask)
+    return jnp.stack(cols, axis=-1)
 
 
 class _Costs(NamedTuple):
     """Objective-stacked, padded cost data (see :func:`_padded_costs`).
 
     Yu : (J, r, n) Y_u,j (r = N_p Y outputs, n = N_p U inputs, padded).
-    Q2 : (J, r, r) 2 Qbar_j = 2 I (x) Q_j.   BH : (J, U, U) 2 R_j / m (+ identity on padding).
+    Q2 : (J, r, r) 2 Qbar_j = 2 I (x) Q_j.   Qh : (J, r, r) a factor, Q2 = Qh Qh',
+    I (x) chol(2 Q_j).   BH : (J, U, U) 2 R_j / m (+ identity on padding).
     H : (J, n, n) H_j = Y_u' 2Qbar Y_u + I (x) BH.   E : (J, n) E_j.
     """
 
     Yu: Any
     Q2: Any
+    Qh: Any
     BH: Any
     H: Any
     E: Any
@@ -250,14 +345,17 @@ def _padded_costs(topology: Topology, data: ProblemData, with_H: bool = True) ->
     free = (jnp.einsum("jyx,kx->jky", Cp, xf) - refp).reshape(J, N * Y)
     CPB = jnp.einsum("jyx,kxz,jzu->jkyu", Cp, Pw[:N], Bj)  # C_j A^k B_j
     Yu = jax.vmap(_block_toeplitz, in_axes=(0, None))(CPB, N)  # (J, N Y, N U)
-    Q2 = 2.0 * jnp.einsum("kl,jab->jkalb", jnp.eye(N, dtype=dt), Qp).reshape(J, N * Y, N * Y)
+    eyeN = jnp.eye(N, dtype=dt)
+    Q2 = 2.0 * jnp.einsum("kl,jab->jkalb", eyeN, Qp).reshape(J, N * Y, N * Y)
+    Qs = _small_cholesky(2.0 * Qp)  # 2 Q_j = Qs Qs', Q_j positive semidefinite (validated)
+    Qh = jnp.einsum("kl,jab->jkalb", eyeN, Qs).reshape(J, N * Y, N * Y)
     QYu = Q2 @ Yu
     H = None
     if with_H:
         H = jnp.swapaxes(Yu, 1, 2) @ QYu + _block_diag(BH, N)
         H = 0.5 * (H + jnp.swapaxes(H, 1, 2))
     E = jnp.einsum("jam,ja->jm", QYu, free)
-    return _Costs(Yu, Q2, BH, H, E)
+    return _Costs(Yu, Q2, Qh, BH, H, E)
 
 
 def _block_diag(B: Any, horizon: int) -> Any:
@@ -267,30 +365,33 @@ def _block_diag(B: Any, horizon: int) -> Any:
     return jnp.einsum("kl,jab->jkalb", eye, B).reshape(J, horizon * U, horizon * U)
 
 
-def _lowrank_parts(Yu: Any, Q2: Any, B: Any, horizon: int) -> tuple[Any, Any, Any]:
+def _lowrank_parts(Yu: Any, Qh: Any, B: Any, horizon: int) -> tuple[Any, Any, Any]:
     """(B^-1, W, P) of the Woodbury identity for (D + Y_u' Q2 Y_u)^-1, D = I (x) B.
 
-    With W = Y_u D^-1 and M = W Y_u' (r x r)::
+    With Q2 = Qh Qh' (a Cholesky factor), W = Y_u D^-1 and M = W Y_u'
+    (r x r, positive semidefinite)::
 
-        (D + Y_u' Q2 Y_u)^-1 = D^-1 - W' P W,   P = Q2 (I + M Q2)^-1
+        (D + Y_u' Q2 Y_u)^-1 = D^-1 - W' P W,   P = Qh (I + Qh' M Qh)^-1 Qh'
 
     (valid for any positive semidefinite Q2, singular included). Only U x U and
-    r x r systems are factorised, against n x n for the dense path: cheaper
-    whenever an objective has fewer outputs than inputs (r < n).
+    r x r symmetric positive definite systems are factorised (Cholesky, no
+    pivoting), against n x n for the dense path: cheaper whenever an objective
+    has few outputs against its inputs (r << n).
     """
     J, r, n = Yu.shape
     U = B.shape[-1]
     Binv = _spd_inverse(B)
     W = jnp.einsum("jskv,jvu->jsku", Yu.reshape(J, r, horizon, U), Binv).reshape(J, r, n)
     M = W @ jnp.swapaxes(Yu, 1, 2)
-    S = jnp.eye(r, dtype=B.dtype) + Q2 @ M  # (I + M Q2)' = I + Q2 M
-    P = jnp.linalg.solve(S, Q2)  # (I + Q2 M)^-1 Q2 = Q2 (I + M Q2)^-1
+    QhT = jnp.swapaxes(Qh, 1, 2)
+    S = jnp.eye(r, dtype=B.dtype) + QhT @ M @ Qh
+    P = Qh @ _spd_inverse(0.5 * (S + jnp.swapaxes(S, 1, 2))) @ QhT
     return Binv, W, 0.5 * (P + jnp.swapaxes(P, 1, 2))
 
 
 def _lowrank_inverse(c: _Costs, B: Any, horizon: int) -> Any:
     """(Y_u' 2Qbar Y_u + I (x) B)^-1 by the Woodbury identity (:func:`_lowrank_parts`)."""
-    Binv, W, P = _lowrank_parts(c.Yu, c.Q2, B, horizon)
+    Binv, W, P = _lowrank_parts(c.Yu, c.Qh, B, horizon)
     inv = _block_diag(Binv, horizon) - jnp.swapaxes(W, 1, 2) @ P @ W
     return 0.5 * (inv + jnp.swapaxes(inv, 1, 2))
 
@@ -374,6 +475,27 @@ def _rho_from_quotients(rq: Any) -> Any:
     return jnp.sqrt(mu_min * mu_max)
 
 
+def _power_chains(M: Any, mask: Any, iterations: int) -> Any:
+    """Power iteration on the two operators M (J, 2, n, n) from a fixed start;
+    returns the normalised iterates (J, 2, n)."""
+    J, _, n, _ = M.shape
+    v0 = np.random.default_rng(12345).uniform(0.5, 1.5, n)
+    v = jnp.broadcast_to((jnp.asarray(v0, M.dtype) * mask)[:, None, :], (J, 2, n))
+
+    def body(_: Any, v: Any) -> Any:
+        v = jnp.einsum("jpab,jpb->jpa", M, v)
+        return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
+
+    return jax.lax.fori_loop(0, iterations, body, v)
+
+
+def _block_rows(B: Any, M: Any) -> Any:
+    """(I (x) B_j) M for B (J, U, U) and M (J, n, m): block-row products, n m U work."""
+    J, n, m = M.shape
+    U = B.shape[-1]
+    return jnp.einsum("juv,jkvm->jkum", B, M.reshape(J, n // U, U, m)).reshape(J, n, m)
+
+
 def _power_rho(H: Any, Hinv: Any, LamB: Any, mask: Any, iterations: int) -> Any:
     """eq.opt_ro with mu_min, mu_max estimated by power iteration.
 
@@ -392,26 +514,14 @@ def _power_rho(H: Any, Hinv: Any, LamB: Any, mask: Any, iterations: int) -> Any:
     mask : (J, n) 1 on real entries.
     """
     J, n, _ = H.shape
-    U = LamB.shape[-1]
-    N = n // U
-    dt = H.dtype
-    Lam = _block_diag(LamB, N)
+    N = n // LamB.shape[-1]
     # block-diagonal products, n^2 U instead of n^3
-    LiH = jnp.einsum("juv,jkvm->jkum", _spd_inverse(LamB), H.reshape(J, N, U, n))
-    HiL = jnp.einsum("jmkv,jvu->jmku", Hinv.reshape(J, n, N, U), LamB)
-    M = jnp.stack([LiH.reshape(J, n, n), HiL.reshape(J, n, n)], axis=1)  # (J, 2, n, n)
-    v0 = np.random.default_rng(12345).uniform(0.5, 1.5, n)
-    v = jnp.broadcast_to((jnp.asarray(v0, dt) * mask)[:, None, :], (J, 2, n))
-
-    def body(_: Any, v: Any) -> Any:
-        v = jnp.einsum("jpab,jpb->jpa", M, v)
-        return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
-
-    v = jax.lax.fori_loop(0, iterations, body, v)
+    LiH = _block_rows(_spd_inverse(LamB), H)
+    HiL = jnp.swapaxes(_block_rows(LamB, jnp.swapaxes(Hinv, 1, 2)), 1, 2)
+    v = _power_chains(jnp.stack([LiH, HiL], axis=1), mask, iterations)
     num = jnp.einsum("jpa,jab,jpb->jp", v, H, v)
-    den = jnp.einsum("jpa,jab,jpb->jp", v, Lam, v)
-    rq = num / den
-    return _rho_from_quotients(rq)
+    den = jnp.einsum("jpa,jab,jpb->jp", v, _block_diag(LamB, N), v)
+    return _rho_from_quotients(num / den)
 
 
 def _blocks(B: Any, x: Any) -> Any:
@@ -424,15 +534,54 @@ def _blocks(B: Any, x: Any) -> Any:
 def _power_rho_lowrank(
     c: _Costs, BH: Any, LamB: Any, mask: Any, iterations: int, horizon: int
 ) -> Any:
-    """:func:`_power_rho` with H = Y_u' Q2 Y_u + I (x) BH and H^-1 applied in low-rank form.
+    """:func:`_power_rho` with H = Y_u' Q2 Y_u + I (x) BH and H^-1 from the Woodbury form.
 
-    Nothing n x n is formed: H x = (I (x) BH) x + Y_u'(Q2 (Y_u x)) and
-    H^-1 x = (I (x) BH^-1) x - W'(P (W x)) (:func:`_lowrank_parts`).
+    Up to n = ``_POWER_DENSE_MAX`` the two iteration operators are formed once
+    from the low-rank parts (:func:`_lowrank_parts`), without any n x n
+    factorisation (above it they are applied in factored form,
+    :func:`_power_rho_matfree`)::
+
+        Lambda^-1 H = I (x) (Lambda_B^-1 BH) + (Lambda^-1 Y_u') Q2 Y_u
+        H^-1 Lambda = I (x) (BH^-1 Lambda_B) - W' P (W Lambda)
+
+    so that an iteration is one matrix-vector product per chain.
     """
     J, r, n = c.Yu.shape
-    dt = c.Yu.dtype
-    Binv, W, P = _lowrank_parts(c.Yu, c.Q2, BH, horizon)
+    Binv, W, P = _lowrank_parts(c.Yu, c.Qh, BH, horizon)
     Laminv = _spd_inverse(LamB)
+    if n > _POWER_DENSE_MAX:
+        return _power_rho_matfree(c, BH, LamB, Binv, W, P, Laminv, mask, iterations)
+    YuT = jnp.swapaxes(c.Yu, 1, 2)
+    up = _block_diag(Laminv @ BH, horizon) + _block_rows(Laminv, YuT) @ (c.Q2 @ c.Yu)
+    WL = jnp.swapaxes(_block_rows(LamB, jnp.swapaxes(W, 1, 2)), 1, 2)  # W Lambda
+    down = _block_diag(Binv @ LamB, horizon) - jnp.swapaxes(W, 1, 2) @ (P @ WL)
+    v = _power_chains(jnp.stack([up, down], axis=1), mask, iterations)
+    QY = jnp.einsum("jts,jpt->jps", c.Qh, jnp.einsum("jsn,jpn->jps", c.Yu, v))  # Qh' Y_u v
+    num = jnp.sum(v * _blocks(BH, v), -1) + jnp.sum(QY * QY, -1)  # v'Hv
+    return _rho_from_quotients(num / jnp.sum(v * _blocks(LamB, v), -1))
+
+
+# Above this many inputs per objective the power iteration applies H and H^-1 in
+# low-rank form instead of forming the two n x n operators (measured on the
+# cruise example: forming them pays at N_p = 10, n = 40, not at N_p = 20, n = 80).
+_POWER_DENSE_MAX = 48
+
+
+def _power_rho_matfree(
+    c: _Costs,
+    BH: Any,
+    LamB: Any,
+    Binv: Any,
+    W: Any,
+    P: Any,
+    Laminv: Any,
+    mask: Any,
+    iterations: int,
+) -> Any:
+    """:func:`_power_rho_lowrank` without forming n x n operators: each
+    iteration applies H x = (I (x) BH) x + Y_u'(Q2 (Y_u x)) and
+    H^-1 x = (I (x) BH^-1) x - W'(P (W x))."""
+    J, r, n = c.Yu.shape
 
     def lowrank(L: Any, Mid: Any, R: Any, x: Any) -> Any:
         y = jnp.einsum("jsn,jpn->jps", R, x)
@@ -450,7 +599,7 @@ def _power_rho_lowrank(
         return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
 
     v0 = np.random.default_rng(12345).uniform(0.5, 1.5, n)
-    v = jnp.broadcast_to((jnp.asarray(v0, dt) * mask)[:, None, :], (J, 2, n))
+    v = jnp.broadcast_to((jnp.asarray(v0, c.Yu.dtype) * mask)[:, None, :], (J, 2, n))
     v = jax.lax.fori_loop(0, iterations, body, v)
     rq = jnp.sum(v * Hx(v), -1) / jnp.sum(v * _blocks(LamB, v), -1)
     return _rho_from_quotients(rq)
@@ -741,9 +890,12 @@ class LocalExplicit:
         Zx = jnp.pad(st.Z, ((0, 0), (0, 1)))  # a zero slack for padded rows
         Zs_old = jnp.moveaxis(Zx[:, lay.rows], 0, 1)  # (J, N, C): Z_j, objective j's rows
         w = rho * (Zs_old - setup.b) + st.gamma
-        g = jnp.einsum("jkc,jcu->jku", w, setup.Ain).reshape(J, N * U)  # Abar_j' w_j
+        # products with the per-step rows A_in,j (C x U, small) as broadcast sums, which
+        # XLA fuses with the elementwise work around them (a dot would be a call each)
+        Ain = setup.Ain[:, None]  # (J, 1, C, U)
+        g = jnp.sum(w[..., None] * Ain, axis=2).reshape(J, N * U)  # Abar_j' w_j
         Uf = -(setup.KE + jnp.einsum("jab,jb->ja", setup.Kinv, g))  # eq.F3_primal
-        AU = jnp.einsum("jku,jcu->jkc", Uf.reshape(J, N, U), setup.Ain)  # Abar_j U_j
+        AU = jnp.sum(Uf.reshape(J, N, 1, U) * Ain, axis=3)  # Abar_j U_j
         # eq.F3_dual, rho-weighted (NOTES 14): Z_c = max(0, sum_j rho_j v_jc / sum_j rho_j)
         if self.relaxation != 1.0:  # over-relaxation (Boyd et al. 2011, sec. 3.4.3)
             a = self.relaxation

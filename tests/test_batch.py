@@ -1,6 +1,7 @@
 """map_scenarios against a plain vmap, on one and on several (forced CPU) devices."""
 
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -67,3 +68,56 @@ def test_sharded_over_two_cpu_devices():
     )
     assert r.returncode == 0, r.stderr[-3000:]
     assert r.stdout.startswith("ok 2"), r.stdout
+
+
+# The cruise-sized problem of bench/bench_local_explicit.py at N_p = 20, batch
+# 100, sharded over two CPU devices on both cores: before the batched
+# factorisations stopped calling LAPACK this deadlocked in every run (the
+# batched LAPACK kernels wait on the intra-op thread pool they run on).
+HANG_SCRIPT = textwrap.dedent(
+    """
+    import os
+    os.sched_setaffinity(0, range(os.cpu_count()))  # undo the suite's one-core pin
+    import jax, jax.numpy as jnp, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    from ampc_jax.batch import map_scenarios
+    from ampc_jax.formulations import LocalExplicit
+    from ampc_jax.generate import random_problem
+    assert len(jax.devices()) == 2, jax.devices()
+    ps = [random_problem(s, 2, shared="all", horizon=20) for s in range(4)]
+    solver = LocalExplicit(ps[0].topology, max_iter=300)
+    data = jax.tree.map(lambda *x: jnp.stack([x[i % len(x)] for i in range(100)]),
+                        *[p.data() for p in ps])
+    f = jax.jit(lambda d: map_scenarios(solver.solve, d, chunk=32))
+    for _ in range(3):
+        out = jax.block_until_ready(f(data))
+    assert bool(jnp.all(jnp.isfinite(out.u)))
+    print("ok")
+    """
+)
+
+
+def test_sharded_batch_with_factorisations_does_not_deadlock():
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
+    try:
+        r = subprocess.run(
+            [sys.executable, "-c", HANG_SCRIPT], env=env, capture_output=True, text=True,
+            timeout=180,
+        )
+    except subprocess.TimeoutExpired:
+        pytest.fail("sharded batched solve did not finish in 180 s (deadlock)")
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout.strip().endswith("ok"), r.stdout
+
+
+def test_batched_solve_calls_no_lapack_kernel():
+    p = random_problem(0, 2, shared="all", horizon=20)
+    solver = LocalExplicit(p.topology)
+    data = stack([p.data(), p.data()])
+    hlo = jax.jit(jax.vmap(solver.solve)).lower(data).compile().as_text()
+    targets = set(re.findall(r'custom_call_target="(\w+)"', hlo))
+    assert not any("lapack" in t for t in targets), targets
+    # the unbatched solve of the same (large enough) problem does use LAPACK
+    hlo1 = jax.jit(LocalExplicit(p.topology, factorisation="dense").solve).lower(p.data()).compile()
+    assert "lapack" in " ".join(re.findall(r'custom_call_target="(\w+)"', hlo1.as_text()))
