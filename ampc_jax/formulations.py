@@ -227,9 +227,11 @@ def _sweep_inverse(M: Any) -> Any:
     return -jax.lax.fori_loop(0, n, sweep, M)
 
 
-# Up to this size the sweeps are at least as fast as LAPACK for one problem
-# (measured: n = 4 faster, n = 10 equal, n = 20 1.6x slower on XLA:CPU).
-_SWEEP_MAX = 12
+# Up to this size the sweeps are used for one (unbatched) problem too: faster
+# than LAPACK for the per-step U x U blocks; a control step of the N_p = 10
+# cruise benchmark took 152 us with 4 against 182 us with 12 (its 10 x 10
+# Woodbury matrix then swept instead of factorised).
+_SWEEP_MAX = 4
 
 
 @jax.custom_batching.custom_vmap
@@ -255,7 +257,7 @@ def _spd_inverse_batched(axis_size: int, in_batched: Any, M: Any) -> tuple[Any, 
 def _spd_inverse(M: Any) -> Any:
     """Inverse of a batch (..., n, n) of symmetric positive definite matrices.
 
-    Small matrices (n <= 12) and every vmapped batch use symmetric sweeps in
+    Small matrices (n <= 4) and every vmapped batch use symmetric sweeps in
     pure JAX (:func:`_sweep_inverse`); a single larger problem uses LAPACK
     (:func:`_lapack_spd_inverse`). Reverse-mode derivative d(M^-1) = -M^-1 dM M^-1.
     """
