@@ -1,12 +1,12 @@
 """ampc-jax: multi-objective agent-based MPC (consensus ADMM, Local Explicit) in pure JAX.
 
-Importing the package applies a workaround for an intermittent deadlock of
-batched XLA:CPU programs seen on small (2-core) machines (see the README,
-"Known issues"): unless ``AMPC_KEEP_XLA_FLAGS=1`` is set, the flags
-``--xla_cpu_multi_thread_eigen=false`` and
-``--xla_cpu_enable_concurrency_optimized_scheduler=false`` are appended to
-``XLA_FLAGS``. They only take effect if JAX's CPU backend has not started yet,
-so import ``ampc_jax`` before running any JAX computation.
+Importing the package appends ``--xla_cpu_multi_thread_eigen=false`` and
+``--xla_cpu_enable_concurrency_optimized_scheduler=false`` to ``XLA_FLAGS``
+(unless ``AMPC_KEEP_XLA_FLAGS=1`` is set): an early mitigation of a deadlock
+of batched XLA:CPU programs on small (2-core) machines. The deadlock's cause
+was later found in XLA:CPU's batched LAPACK kernels, which the solvers no
+longer call under ``vmap`` (README, "Known issues"). The flags only take effect
+if JAX's CPU backend has not started yet, so import ``ampc_jax`` first.
 """
 
 import os as _os

@@ -13,10 +13,16 @@ Measured on the cruise-control benchmark (``bench/bench_local_explicit.py``):
 chunks of 16 to 64 ran 2.5x faster than one ``vmap`` of 1,024 drives on one
 core.
 
-Caution (README, "Known issues"): on the 2-core test machine, sharding over two
-forced CPU devices hung (XLA:CPU deadlock) in 2 of 2 runs of the N_p = 20
-benchmark at batch 100, while N_p = 10 ran to 100,000; one device never hung.
-Run long sharded jobs under a timeout.
+Deadlock (found and fixed, README "Known issues"): XLA:CPU's batched LAPACK
+kernels (Cholesky, triangular solve, LU, eigh) split their batch into tasks on
+the intra-op thread pool they themselves run on and block until those finish.
+With two CPU devices on two cores both pool threads can be such a kernel, and
+nothing is left to run the tasks: the N_p = 20 benchmark hung at batch 100 in
+every run. Local Explicit's batched factorisations are therefore pure JAX
+(``formulations._sweep_inverse``), and a vmapped solve contains no LAPACK call
+(``tests/test_batch.py`` checks both). The exact ``rho_method="eigh"`` and
+rank-deficient constraint rows still use LAPACK eigensolvers: shard those
+with one device per process, or under a timeout.
 """
 
 from __future__ import annotations
