@@ -607,14 +607,20 @@ def _power_rho_matfree(
     return _rho_from_quotients(rq)
 
 
-def shift_state(state: ADMMState) -> ADMMState:
-    """Warm start: the previous step's iterate shifted one step along the horizon.
+def shift_state(state: ADMMState, steps: int = 1) -> ADMMState:
+    """Warm start: the previous step's iterate shifted along the horizon.
 
-    Step k+1 becomes step k; the last step is repeated.
+    ``steps=1`` (default): step k+1 becomes step k and the last step is
+    repeated, the usual MPC warm start. ``steps=0`` holds the previous iterate
+    as it is (only the iteration count and residuals are reset): on the
+    vehicle examples' short horizons (N_p = 2 to 3) that needed fewer
+    iterations in the stability example (``docs/results.md``).
     """
+    if steps not in (0, 1):
+        raise ValueError(f"steps: expected 0 (hold) or 1 (shift), got {steps!r}")
 
     def sh(x: Any) -> Any:
-        return jnp.concatenate([x[1:], x[-1:]], axis=0)
+        return jnp.concatenate([x[1:], x[-1:]], axis=0) if steps else x
 
     inf = jnp.full_like(state.primal, jnp.inf)
     return ADMMState(

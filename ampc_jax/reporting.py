@@ -159,6 +159,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             rho_scale=_parse_floats("--rho-scale", args.rho_scale),
             relaxation=args.relaxation,
             integrated_rho_scale=args.integrated_rho_scale,
+            warm_shift=args.warm_shift,
         )
         if args.set:
             cfg = with_settings(cfg, **_parse_settings(args.set, cfg.settings))
@@ -244,7 +245,7 @@ def _summary(m: dict[str, Any]) -> None:
         )
         print(
             f"  solver          eps_r {m['tol_primal']:g}, eps_s {m['tol_dual']:g}, "
-            f"relaxation {m['relaxation']:g}, {scales}"
+            f"relaxation {m['relaxation']:g}, {scales}, warm_shift {m.get('warm_shift', 1)}"
         )
     if m["formulation"] != "none":
         print(
@@ -347,6 +348,14 @@ def add_cli_commands(sub: Any) -> None:
         default=None,
         help="ADMM over-relaxation in (0, 2) for Local Explicit and the integrated MPC "
         "(1 = the paper); default: the example's tuned value",
+    )
+    p.add_argument(
+        "--warm-shift",
+        type=int,
+        choices=(0, 1),
+        default=None,
+        help="warm start: 1 shifts the previous iterate one step along the horizon, "
+        "0 holds it; default: the example's tuned value",
     )
     p.add_argument(
         "--integrated-rho-scale",

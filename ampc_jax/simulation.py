@@ -114,6 +114,7 @@ _CRUISE_DRIVER_PI = (1500.0, 200.0)
 
 # --------------------------------------------------------------------------- configuration
 _SOLVER_OPTIONS = (
+    "warm_shift",
     "rho_scale",
     "relaxation",
     "integrated_rho_scale",
@@ -125,6 +126,7 @@ CONTROLLER_DEFAULTS: dict[str, dict[str, Any]] = {
     # Chosen by ``bench/bench_closed_loop.py sweep`` (docs/results.md, "Solver tuning"):
     # replay of logged closed-loop steps at the controller's tolerance, warm started.
     "cruise": {
+        "warm_shift": 1,  # shift the warm start one step (hold: p95 17.2 -> 18.2)
         "rho_scale": (1.0, 0.5),  # (LST, YRT): iterations p95 31 -> 17 with alpha 1.5
         "relaxation": 1.5,
         "integrated_rho_scale": 0.3,  # the integrated MPC's own best at alpha 1.5 (p95 78 -> 25)
@@ -132,6 +134,7 @@ CONTROLLER_DEFAULTS: dict[str, dict[str, Any]] = {
         "shadow_relaxation": 1.8,
     },
     "stability": {
+        "warm_shift": 0,  # hold the previous iterate: p50 10 -> 4, p95 16 -> 15 (launch/brake)
         "rho_scale": (1.5, 1.0),  # (VSC, WSC): p95 21 -> 16 (launch/brake), 50 -> 23 (DLC)
         "relaxation": 1.6,
         "integrated_rho_scale": 1.2,  # its own best at alpha 1.6
@@ -142,13 +145,16 @@ CONTROLLER_DEFAULTS: dict[str, dict[str, Any]] = {
 """Per-example defaults of the solver options of :class:`SimConfig` (see its docstring)."""
 
 PAPER_SOLVER_OPTIONS: dict[str, Any] = {
+    "warm_shift": 1,
     "rho_scale": 1.0,
     "relaxation": 1.0,
     "integrated_rho_scale": 1.0,
     "shadow_rho_scale": 1.0,
     "shadow_relaxation": 1.0,
 }
-"""eq.opt_ro's rho* unscaled and no over-relaxation: the paper's iteration (``config_for(..., **PAPER_SOLVER_OPTIONS)``)."""
+"""eq.opt_ro's rho* unscaled and no over-relaxation: the paper's iteration
+(``config_for(..., **PAPER_SOLVER_OPTIONS)``); the warm start (which the paper
+does not use) is the standard shifted one."""
 
 
 @dataclass(frozen=True)
@@ -172,8 +178,12 @@ class SimConfig:
         the printed ``rho_j (Z^q - Z^(q-1))`` scales with rho_j ~ 1e-5).
         Defaults from ``docs/results.md``.
     max_iter : iteration cap of the controller.
-    warm_start : warm start Local Explicit from the previous step's shifted state
+    warm_start : warm start Local Explicit from the previous step's state
         (``False``: cold start at every step, as the paper).
+    warm_shift : how the warm start is built from the previous step's iterate
+        (:func:`~ampc_jax.formulations.shift_state`): 1 shifts it one step
+        along the horizon, 0 holds it. Used for the controller, the shadow and
+        the r_time replay alike. ``None``: the example's default.
     rho_scale : factor(s) on eq.opt_ro's rho_j* of Local Explicit, a float or
         one per objective of the *example* in its order (LST, YRT or VSC, WSC);
         with ``disabled`` objectives only the enabled entries are used.
@@ -209,6 +219,7 @@ class SimConfig:
     tol_dual: float = 1.0
     max_iter: int = 200
     warm_start: bool = True
+    warm_shift: int | None = None
     rho_scale: float | tuple[float, ...] | None = None
     relaxation: float | None = None
     integrated_rho_scale: float | None = None
@@ -248,6 +259,10 @@ class SimConfig:
         for name in _SOLVER_OPTIONS:
             if getattr(self, name) is None:
                 object.__setattr__(self, name, defaults[name])
+        ws = self.warm_shift
+        if isinstance(ws, bool) or ws not in (0, 1):
+            raise ValueError(f"warm_shift: expected 0 (hold) or 1 (shift), got {ws!r}")
+        object.__setattr__(self, "warm_shift", int(ws))
         n_obj = len(self.objectives_all)
         scale = self.rho_scale
         try:
@@ -628,7 +643,7 @@ class Simulator:
                 u_app = jnp.where(ok, u0, hold)
                 fb = ~ok
                 warm_new = jax.tree.map(
-                    lambda a, b: jnp.where(ok, a, b), shift_state(res.state), ctrl_cold
+                    lambda a, b: jnp.where(ok, a, b), shift_state(res.state, c.warm_shift), ctrl_cold
                 )
                 u_prev = u_app
                 u_full = u_full.at[cols].set(u_app)
@@ -640,7 +655,7 @@ class Simulator:
                         jnp.isfinite(sh.u0)
                     )
                     sh_warm_new = jax.tree.map(
-                        lambda a, b: jnp.where(sh_ok, a, b), shift_state(sh.state), shadow_cold
+                        lambda a, b: jnp.where(sh_ok, a, b), shift_state(sh.state, c.warm_shift), shadow_cold
                     )
                     u_sh_full = u_sh_full.at[cols].set(sh.u0)
                     sh_iters, sh_status = sh.iterations, sh.status
@@ -1011,7 +1026,7 @@ def replay_timing(config: SimConfig, log: SimLog, repeats: int = 3) -> dict[str,
         t_i[k] = np.median(ts)
         it_i[k] = int(r.iterations)
         ok = int(r.status) in _OK_STATUS and bool(np.all(np.isfinite(np.asarray(r.u))))
-        w_i = shift_state(r.state) if (config.warm_start and ok) else cold_i
+        w_i = shift_state(r.state, config.warm_shift) if (config.warm_start and ok) else cold_i
     return {
         "t_distributed": t_d,
         "t_integrated": t_i,

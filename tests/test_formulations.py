@@ -258,6 +258,10 @@ def test_float32_matches_float64(factorisation):
     assert int(r32.status) in (0, 1)
     # float32 tolerance: 1e-3 of the input scale (bounds are O(1) here)
     np.testing.assert_allclose(r32.u0, r64.u0, atol=2e-3)
+    # batched float32 (the factorisations then run as pure-JAX sweeps)
+    rb = jax.jit(jax.vmap(solver.solve))(stack([p.data(jnp.float32)] * 3))
+    assert rb.u.dtype == jnp.float32
+    np.testing.assert_allclose(rb.u0, np.broadcast_to(r64.u0, rb.u0.shape), atol=2e-3)
 
 
 def test_max_iter_status_and_no_recompile():
@@ -282,6 +286,13 @@ def test_warm_start_shift_converges_to_same_and_saves_iterations():
     warm = fn(d2, None, shift_state(first.state))
     np.testing.assert_allclose(warm.u0, cold.u0, atol=1e-3)
     assert int(warm.iterations) < int(cold.iterations)
+    # holding the previous iterate instead (shift_state(..., 0)) reaches the same optimum
+    held = shift_state(first.state, 0)
+    np.testing.assert_array_equal(held.Z, first.state.Z)
+    assert int(held.iteration) == 0 and np.all(np.isinf(held.primal))
+    np.testing.assert_allclose(fn(d2, None, held).u0, cold.u0, atol=1e-3)
+    with pytest.raises(ValueError, match="steps"):
+        shift_state(first.state, 2)
 
 
 def test_fixed_iterations_gradient_matches_finite_differences():

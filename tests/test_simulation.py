@@ -194,6 +194,8 @@ def test_walkthrough_notebook_executes():
         ({"integrated_rho_scale": (1.0, 1.0)}, "integrated_rho_scale"),
         ({"shadow_rho_scale": float("inf")}, "shadow_rho_scale"),
         ({"shadow_relaxation": 2.5}, "shadow_relaxation"),
+        ({"warm_shift": 2}, "warm_shift"),
+        ({"warm_shift": True}, "warm_shift"),
     ],
 )
 def test_solver_options_are_validated(kw, field):
@@ -207,6 +209,7 @@ def test_solver_options_defaults_and_pass_through():
         c = config_for(name)
         assert c.rho_scale == tuple(d["rho_scale"]) and c.relaxation == d["relaxation"]
         assert c.integrated_rho_scale == d["integrated_rho_scale"]
+        assert c.warm_shift == d["warm_shift"]
         assert hash(c) == hash(config_for(name))  # still a static jit argument
         T = build_topology(c)[0]
         le = Simulator(c).controller()
@@ -245,6 +248,9 @@ def test_cli_rejects_bad_solver_options(capsys):
     assert "--rho-scale" in capsys.readouterr().err
     assert main([*base, "--relaxation", "2"]) == 2
     assert "relaxation" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # argparse: choices 0, 1
+        main([*base, "--warm-shift", "2"])
+    assert "--warm-shift" in capsys.readouterr().err
 
 
 def test_tuned_settings_are_the_defaults():
