@@ -477,12 +477,17 @@ def _rho_from_quotients(rq: Any) -> Any:
     return jnp.sqrt(mu_min * mu_max)
 
 
+def _power_start(mask: Any, dtype: Any) -> Any:
+    """The two chains' fixed start (J, 2, n): positive entries on real inputs."""
+    J, n = mask.shape
+    v0 = np.random.default_rng(12345).uniform(0.5, 1.5, n)
+    return jnp.broadcast_to((jnp.asarray(v0, dtype) * mask)[:, None, :], (J, 2, n))
+
+
 def _power_chains(M: Any, mask: Any, iterations: int) -> Any:
     """Power iteration on the two operators M (J, 2, n, n) from a fixed start;
     returns the normalised iterates (J, 2, n)."""
-    J, _, n, _ = M.shape
-    v0 = np.random.default_rng(12345).uniform(0.5, 1.5, n)
-    v = jnp.broadcast_to((jnp.asarray(v0, M.dtype) * mask)[:, None, :], (J, 2, n))
+    v = _power_start(mask, M.dtype)
 
     def body(_: Any, v: Any) -> Any:
         v = jnp.einsum("jpab,jpb->jpa", M, v)
@@ -583,7 +588,6 @@ def _power_rho_matfree(
     """:func:`_power_rho_lowrank` without forming n x n operators: each
     iteration applies H x = (I (x) BH) x + Y_u'(Q2 (Y_u x)) and
     H^-1 x = (I (x) BH^-1) x - W'(P (W x))."""
-    J, r, n = c.Yu.shape
 
     def lowrank(L: Any, Mid: Any, R: Any, x: Any) -> Any:
         y = jnp.einsum("jsn,jpn->jps", R, x)
@@ -600,8 +604,7 @@ def _power_rho_matfree(
         v = jnp.concatenate([up, down], axis=1)
         return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
 
-    v0 = np.random.default_rng(12345).uniform(0.5, 1.5, n)
-    v = jnp.broadcast_to((jnp.asarray(v0, c.Yu.dtype) * mask)[:, None, :], (J, 2, n))
+    v = _power_start(mask, c.Yu.dtype)
     v = jax.lax.fori_loop(0, iterations, body, v)
     rq = jnp.sum(v * Hx(v), -1) / jnp.sum(v * _blocks(LamB, v), -1)
     return _rho_from_quotients(rq)

@@ -72,6 +72,21 @@ def test_lowrank_and_dense_setups_agree():
     np.testing.assert_allclose(lo.KE, de.KE, rtol=1e-7, atol=1e-9 * np.abs(de.KE).max())
 
 
+def test_lowrank_power_rho_formed_and_factored_agree(monkeypatch):
+    """rho's power iteration on formed operators (n <= 48) and in factored form."""
+    import ampc_jax.formulations as F
+
+    p = random_problem(8, 2, shared="all", horizon=10)
+    T, d = p.topology, p.data()
+    solver = LocalExplicit(T, factorisation="lowrank")
+    n = T.horizon * max(len(T.group_columns(j)) for j in range(T.n_objectives))
+    assert n <= F._POWER_DENSE_MAX  # the first call forms the operators
+    formed = jax.jit(lambda x: solver.setup(x).rho)(d)
+    monkeypatch.setattr(F, "_POWER_DENSE_MAX", 0)
+    factored = jax.jit(lambda x: solver.setup(x).rho)(d)
+    np.testing.assert_allclose(factored, formed, rtol=1e-8)
+
+
 @pytest.mark.parametrize("relaxation", [1.6, 0.8])
 def test_rho_scale_and_relaxation_keep_the_optimum(relaxation):
     problems = [random_problem(seed, 3, shared="both") for seed in range(6)]
