@@ -229,8 +229,8 @@ def _sweep_inverse(M: Any) -> Any:
 
 # Up to this size the sweeps are used for one (unbatched) problem too: faster
 # than LAPACK for the per-step U x U blocks; a control step of the N_p = 10
-# cruise benchmark took 152 us with 4 against 182 us with 12 (its 10 x 10
-# Woodbury matrix then swept instead of factorised).
+# cruise benchmark took 151 to 153 us with 4 against 189 to 201 us with 12 (its
+# 10 x 10 Woodbury matrix then swept instead of factorised).
 _SWEEP_MAX = 4
 
 
