@@ -81,15 +81,18 @@ __all__ = [
 class LocalSetup(NamedTuple):
     """Per-control-step data of Local Explicit, built and factorised once.
 
-    The objectives are stacked on a leading axis j and padded to common sizes:
-    U inputs per step (the largest n_u,j) and C constraint rows per step (the
-    largest n_c,j); n = N_p U. Padded inputs carry an identity block in K_j and
-    zero columns in A_in,j, padded rows zero coefficients and zero right-hand
-    side, so neither ever moves (the unpadded iterates are exactly those of
-    the per-objective algorithm).
+    The objectives are stacked on a leading axis j and padded to U inputs per
+    step (the largest n_u,j); n = N_p U. Padded inputs carry an identity block
+    in K_j and zero columns in A_in,j, so they never move. Constraint rows keep
+    the problem's own numbering (all n_c rows for every objective): the rows
+    objective j does not carry have zero coefficients and right-hand side and
+    are masked out of the global and dual steps. So the global step needs no
+    gather: the unpadded iterates are exactly those of the per-objective
+    algorithm.
 
-    Ain : (J, C, U) per-step rows A_in,j (Abar_j = I_{N_p} (x) A_in,j).
-    b : (J, N_p, C) bbar_j, step by step.
+    Ain : (J, n_c, U) per-step rows A_in,j (Abar_j = I_{N_p} (x) A_in,j), zero
+        on rows objective j does not carry.
+    b : (J, N_p, n_c) bbar_j, step by step (zero on rows not carried).
     rho : (J,) rho_j.
     Kinv : (J, n, n) K_j^-1, K_j = H_j + rho_j Abar_j' Abar_j (factorised once).
     KE : (J, n) K_j^-1 E_j.
@@ -112,9 +115,7 @@ class _Layout(NamedTuple):
 
     cols: np.ndarray  # (J, U) input index of each padded column; n_u for padding
     umask: np.ndarray  # (J, U) 1 for a real input
-    rows: np.ndarray  # (J, C) constraint row of each padded row; n_c for padding
-    S: np.ndarray  # (J, C, n_c) 0/1 selection: padded row -> slack row
-    inv: np.ndarray  # (J, n_c) padded row of objective j carrying slack row c; C if none
+    carried: np.ndarray  # (J, n_c) 1 where objective j carries constraint row c
     P: np.ndarray  # (J, U, n_u) 0/1 selection: padded column -> input
     scale: np.ndarray  # (J, U) 1 / m_(i) of each column's agent (0 for padding)
     u_sizes: tuple  # n_u,j
@@ -129,10 +130,9 @@ def _layout(topology: Topology) -> _Layout:
     J = T.n_objectives
     u_sizes = tuple(len(T.group_columns(j)) for j in range(J))
     c_sizes = tuple(len(T.group_rows(j)) for j in range(J))
-    U, C = max(u_sizes), max(1, max(c_sizes))
+    U = max(u_sizes)
     cols = np.full((J, U), T.n_u, np.int32)
-    rows = np.full((J, C), T.n_c, np.int32)
-    S = np.zeros((J, C, T.n_c))
+    carried = np.zeros((J, T.n_c))
     P = np.zeros((J, U, T.n_u))
     scale = np.zeros((J, U))
     mult = T.multiplicity
@@ -142,26 +142,17 @@ def _layout(topology: Topology) -> _Layout:
         for a, k in enumerate(cj):
             P[j, a, k] = 1.0
             scale[j, a] = 1.0 / mult[T.agent_of_input(k)]
-        rj = T.group_rows(j)
-        rows[j, : len(rj)] = rj
-        for a, c in enumerate(rj):
-            S[j, a, c] = 1.0
-    inv = np.full((J, T.n_c), C, np.int32)
-    for j in range(J):
-        for a, c in enumerate(T.group_rows(j)):
-            inv[j, c] = a
+        carried[j, list(T.group_rows(j))] = 1.0
     umask = (cols < T.n_u).astype(np.float64)
     full = tuple(T.group_rank[j] == u_sizes[j] for j in range(J))
-    return _Layout(
-        cols, umask, rows, S, inv, P, scale, u_sizes, c_sizes, tuple(T.output_sizes), full
-    )
+    return _Layout(cols, umask, carried, P, scale, u_sizes, c_sizes, tuple(T.output_sizes), full)
 
 
 class _Flat(NamedTuple):
     """The iterate in the padded stacked layout (the loop carry)."""
 
     Z: Any  # (N_p, n_c)
-    gamma: Any  # (J, N_p, C)
+    gamma: Any  # (J, N_p, n_c), zero on rows objective j does not carry
     U: Any  # (J, n)
     iteration: Any
     primal: Any  # (J,)
@@ -543,51 +534,20 @@ def _power_rho_lowrank(
 ) -> Any:
     """:func:`_power_rho` with H = Y_u' Q2 Y_u + I (x) BH and H^-1 from the Woodbury form.
 
-    Up to n = ``_POWER_DENSE_MAX`` the two iteration operators are formed once
-    from the low-rank parts (:func:`_lowrank_parts`), without any n x n
-    factorisation (above it they are applied in factored form,
-    :func:`_power_rho_matfree`)::
+    No n x n matrix is formed or factorised: each iteration applies
+    (:func:`_lowrank_parts`)::
 
-        Lambda^-1 H = I (x) (Lambda_B^-1 BH) + (Lambda^-1 Y_u') Q2 Y_u
-        H^-1 Lambda = I (x) (BH^-1 Lambda_B) - W' P (W Lambda)
+        Lambda^-1 H x = (I (x) Lambda_B^-1) [(I (x) BH) x + Y_u'(Q2 (Y_u x))]
+        H^-1 Lambda x = (I (x) BH^-1) Lambda x - W'(P (W Lambda x))
 
-    so that an iteration is one matrix-vector product per chain.
+    which is O(n r) per product against the O(n^2 r) of forming the two
+    operators. Measured on the cruise example at N_p = 10 (n = 40): setup
+    26 against 42 us per case batched over 32 cases, and 56 against 62 us
+    for one problem (it was the other way round before the factorisations
+    became pure JAX, 2026-11-29).
     """
-    J, r, n = c.Yu.shape
     Binv, W, P = _lowrank_parts(c.Yu, c.Qh, BH, horizon)
     Laminv = _spd_inverse(LamB)
-    if n > _POWER_DENSE_MAX:
-        return _power_rho_matfree(c, BH, LamB, Binv, W, P, Laminv, mask, iterations)
-    YuT = jnp.swapaxes(c.Yu, 1, 2)
-    up = _block_diag(Laminv @ BH, horizon) + _block_rows(Laminv, YuT) @ (c.Q2 @ c.Yu)
-    WL = jnp.swapaxes(_block_rows(LamB, jnp.swapaxes(W, 1, 2)), 1, 2)  # W Lambda
-    down = _block_diag(Binv @ LamB, horizon) - jnp.swapaxes(W, 1, 2) @ (P @ WL)
-    v = _power_chains(jnp.stack([up, down], axis=1), mask, iterations)
-    QY = jnp.einsum("jts,jpt->jps", c.Qh, jnp.einsum("jsn,jpn->jps", c.Yu, v))  # Qh' Y_u v
-    num = jnp.sum(v * _blocks(BH, v), -1) + jnp.sum(QY * QY, -1)  # v'Hv
-    return _rho_from_quotients(num / jnp.sum(v * _blocks(LamB, v), -1))
-
-
-# Above this many inputs per objective the power iteration applies H and H^-1 in
-# low-rank form instead of forming the two n x n operators (measured on the
-# cruise example: forming them pays at N_p = 10, n = 40, not at N_p = 20, n = 80).
-_POWER_DENSE_MAX = 48
-
-
-def _power_rho_matfree(
-    c: _Costs,
-    BH: Any,
-    LamB: Any,
-    Binv: Any,
-    W: Any,
-    P: Any,
-    Laminv: Any,
-    mask: Any,
-    iterations: int,
-) -> Any:
-    """:func:`_power_rho_lowrank` without forming n x n operators: each
-    iteration applies H x = (I (x) BH) x + Y_u'(Q2 (Y_u x)) and
-    H^-1 x = (I (x) BH^-1) x - W'(P (W x))."""
 
     def lowrank(L: Any, Mid: Any, R: Any, x: Any) -> Any:
         y = jnp.einsum("jsn,jpn->jps", R, x)
@@ -754,10 +714,10 @@ class LocalExplicit:
         need_H = not self.lowrank or self.rho_method == "eigh" or not all(lay.full)
         c = _padded_costs(T, data, with_H=need_H)
         dt = c.E.dtype
-        Aix = jnp.pad(data.Ain, ((0, 1), (0, 1)))  # padded row / column index -> 0
-        Ain = Aix[lay.rows[:, :, None], lay.cols[:, None, :]]  # (J, C, U)
-        bx = jnp.pad(data.bin, ((0, 0), (0, 1)))
-        b = jnp.moveaxis(bx[:, lay.rows], 1, 0)  # (J, N, C)
+        M = jnp.asarray(lay.carried, dt)  # (J, n_c)
+        Aix = jnp.pad(data.Ain, ((0, 0), (0, 1)))  # padded column index -> 0
+        Ain = jnp.moveaxis(Aix[:, lay.cols], 1, 0) * M[:, :, None]  # (J, n_c, U)
+        b = data.bin[None] * M[:, None, :]  # (J, N, n_c)
         AtA = jnp.einsum("jcu,jcv->juv", Ain, Ain)
         if rho is None:
             scale = np.broadcast_to(np.asarray(self.rho_scale, dtype=float), (J,))
@@ -772,8 +732,7 @@ class LocalExplicit:
         else:
             Kinv = _spd_inverse(c.H + _block_diag(rho_arr[:, None, None] * AtA, N))
         KE = jnp.einsum("jab,jb->ja", Kinv, c.E)
-        S = jnp.asarray(lay.S, dt)
-        den = jnp.einsum("j,jcd->d", rho_arr, S)
+        den = rho_arr @ M
         return LocalSetup(
             Ain=Ain,
             b=b,
@@ -841,7 +800,7 @@ class LocalExplicit:
             if not full[j]:
                 u = lay.u_sizes[j]
                 Hj = _unpad_matrix(H[j], u, U, N)
-                Aj = Ain[j, : lay.c_sizes[j], :u]
+                Aj = Ain[j][self._rows(j), :u]
                 out[j] = optimal_rho(Hj, Aj, N, T.group_rank[j])
         return jnp.stack(out)
 
@@ -864,11 +823,16 @@ class LocalExplicit:
 
     # -- one iteration --------------------------------------------------------------
     def _flat(self, state: ADMMState) -> _Flat:
-        lay = _layout(self.topology)
+        T = self.topology
+        lay = _layout(T)
         J, U = lay.cols.shape
-        C = lay.rows.shape[1]
         Up = jnp.stack([jnp.pad(u, ((0, 0), (0, U - u.shape[1]))) for u in state.U])
-        gp = jnp.stack([jnp.pad(g, ((0, 0), (0, C - g.shape[1]))) for g in state.gamma])
+        gp = jnp.stack(
+            [
+                jnp.zeros((T.horizon, T.n_c), g.dtype).at[:, self._rows(j)].set(g)
+                for j, g in enumerate(state.gamma)
+            ]
+        )
         return _Flat(
             Z=state.Z,
             gamma=gp,
@@ -886,7 +850,7 @@ class LocalExplicit:
         return ADMMState(
             U=tuple(U3[j, :, :u] for j, u in enumerate(lay.u_sizes)),
             Z=flat.Z,
-            gamma=tuple(flat.gamma[j, :, :c] for j, c in enumerate(lay.c_sizes)),
+            gamma=tuple(flat.gamma[j][:, self._rows(j)] for j in range(T.n_objectives)),
             iteration=flat.iteration,
             primal=flat.primal,
             dual=flat.dual,
@@ -898,31 +862,26 @@ class LocalExplicit:
         J, U = lay.cols.shape
         N = T.horizon
         rho = setup.rho[:, None, None]
-        Zx = jnp.pad(st.Z, ((0, 0), (0, 1)))  # a zero slack for padded rows
-        Zs_old = jnp.moveaxis(Zx[:, lay.rows], 0, 1)  # (J, N, C): Z_j, objective j's rows
-        w = rho * (Zs_old - setup.b) + st.gamma
-        # products with the per-step rows A_in,j (C x U, small) as broadcast sums, which
+        M = jnp.asarray(lay.carried, setup.rho.dtype)[:, None, :]  # (J, 1, n_c)
+        Z_old = st.Z[None]  # every objective sees the rows in the problem's numbering
+        w = rho * (Z_old - setup.b) + st.gamma  # rows not carried meet zero columns in Ain
+        # products with the per-step rows A_in,j (n_c x U, small) as broadcast sums, which
         # XLA fuses with the elementwise work around them (a dot would be a call each)
-        Ain = setup.Ain[:, None]  # (J, 1, C, U)
+        Ain = setup.Ain[:, None]  # (J, 1, n_c, U)
         g = jnp.sum(w[..., None] * Ain, axis=2).reshape(J, N * U)  # Abar_j' w_j
         Uf = -(setup.KE + jnp.einsum("jab,jb->ja", setup.Kinv, g))  # eq.F3_primal
         AU = jnp.sum(Uf.reshape(J, N, 1, U) * Ain, axis=3)  # Abar_j U_j
         # eq.F3_dual, rho-weighted (NOTES 14): Z_c = max(0, sum_j rho_j v_jc / sum_j rho_j)
         if self.relaxation != 1.0:  # over-relaxation (Boyd et al. 2011, sec. 3.4.3)
             a = self.relaxation
-            AUr = a * AU + (1.0 - a) * (setup.b - Zs_old)
+            AUr = a * AU + (1.0 - a) * (setup.b - Z_old)
         else:
             AUr = AU
-        rv = rho * (setup.b - AUr) - st.gamma  # rho_j v_j
-        # sum over the objectives carrying each slack row: static gathers (a padded
-        # zero column for objectives without the row), fused by XLA, no product
-        rvx = jnp.pad(rv, ((0, 0), (0, 0), (0, 1)))
-        num = sum(rvx[j][:, lay.inv[j]] for j in range(J))
-        Z = jnp.maximum(num * setup.inv_den, 0.0)
-        Zs = jnp.moveaxis(jnp.pad(Z, ((0, 0), (0, 1)))[:, lay.rows], 0, 1)
-        r = AU - setup.b + Zs
-        gamma = st.gamma + rho * (AUr - setup.b + Zs)  # eq.F3_multiplier
-        dz = Zs - Zs_old
+        rv = M * (rho * (setup.b - AUr) - st.gamma)  # rho_j v_j on the rows j carries
+        Z = jnp.maximum(jnp.sum(rv, axis=0) * setup.inv_den, 0.0)
+        r = M * (AU - setup.b + Z)
+        gamma = st.gamma + rho * M * (AUr - setup.b + Z)  # eq.F3_multiplier
+        dz = M * (Z - Z_old)
         if self.dual_residual == "paper":
             dz = rho * dz  # s_j = rho_j (Z_j - Z_j_prev), eq.Convergence
         primal = jnp.sum(r * r, axis=(1, 2))
