@@ -182,7 +182,9 @@ def cmd_solve(args: argparse.Namespace) -> int:
                 return _fail("--warm-start applies to --formulation local_explicit only")
             if args.solver == "jax":
                 if len(args.rho_scale) != 1:
-                    return _fail("rho_scale: the integrated problem has one objective; give one value")
+                    return _fail(
+                        "rho_scale: the integrated problem has one objective; give one value"
+                    )
                 try:
                     solver = IntegratedADMM(
                         T,

@@ -643,7 +643,9 @@ class Simulator:
                 u_app = jnp.where(ok, u0, hold)
                 fb = ~ok
                 warm_new = jax.tree.map(
-                    lambda a, b: jnp.where(ok, a, b), shift_state(res.state, c.warm_shift), ctrl_cold
+                    lambda a, b: jnp.where(ok, a, b),
+                    shift_state(res.state, c.warm_shift),
+                    ctrl_cold,
                 )
                 u_prev = u_app
                 u_full = u_full.at[cols].set(u_app)
@@ -655,7 +657,9 @@ class Simulator:
                         jnp.isfinite(sh.u0)
                     )
                     sh_warm_new = jax.tree.map(
-                        lambda a, b: jnp.where(sh_ok, a, b), shift_state(sh.state, c.warm_shift), shadow_cold
+                        lambda a, b: jnp.where(sh_ok, a, b),
+                        shift_state(sh.state, c.warm_shift),
+                        shadow_cold,
                     )
                     u_sh_full = u_sh_full.at[cols].set(sh.u0)
                     sh_iters, sh_status = sh.iterations, sh.status

@@ -83,6 +83,8 @@ def make_solver(T: Topology, config: str, tol: float = TOL) -> LocalExplicit:
     opts = dict(CONFIGS[config])
     tol = opts.pop("tol", tol)
     return LocalExplicit(T, max_iter=2000, tol_primal=tol, tol_dual=tol, **opts)
+
+
 TUNE_SEEDS = range(1000, 1004)
 
 
@@ -318,6 +320,7 @@ def throughput(
         "compile_s": {},
         "iterations_mean": {},
     }
+
     def batched(ops):
         # chunks of vmap_chunk drives, each chunk stopping at its own slowest case,
         # the batch split over all devices (ampc_jax.batch)
@@ -428,9 +431,7 @@ def main(argv: list[str] | None = None) -> int:
         "--max-batch", type=int, default=100_000, help="largest batch size (default 100,000)"
     )
     ap.add_argument("--tune", action="store_true", help="only run the rho_scale/relaxation grid")
-    ap.add_argument(
-        "--only", choices=("latency", "throughput"), help="run one of the two parts"
-    )
+    ap.add_argument("--only", choices=("latency", "throughput"), help="run one of the two parts")
     ap.add_argument("--horizons", default="10,20", help="comma-separated N_p values")
     ap.add_argument("--dtypes", default="float64,float32", help="throughput dtypes")
     args = ap.parse_args(argv)
@@ -474,7 +475,12 @@ def main(argv: list[str] | None = None) -> int:
     for dtype in dtypes if args.only != "latency" else ():
         for horizon in horizons:
             thr = throughput(
-                horizon, sizes, args.chunk, 5 if args.quick else 20, 9, dtype=dtype,
+                horizon,
+                sizes,
+                args.chunk,
+                5 if args.quick else 20,
+                9,
+                dtype=dtype,
                 vmap_chunk=args.vmap_chunk,
             )
             results["throughput"].append(thr)

@@ -62,7 +62,9 @@ SCRIPT = textwrap.dedent(
 
 def test_sharded_over_two_cpu_devices():
     env = dict(os.environ)
-    env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
+    env["XLA_FLAGS"] = (
+        env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+    ).strip()
     r = subprocess.run(
         [sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=240
     )
@@ -99,10 +101,15 @@ HANG_SCRIPT = textwrap.dedent(
 
 def test_sharded_batch_with_factorisations_does_not_deadlock():
     env = dict(os.environ)
-    env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
+    env["XLA_FLAGS"] = (
+        env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+    ).strip()
     try:
         r = subprocess.run(
-            [sys.executable, "-c", HANG_SCRIPT], env=env, capture_output=True, text=True,
+            [sys.executable, "-c", HANG_SCRIPT],
+            env=env,
+            capture_output=True,
+            text=True,
             timeout=180,
         )
     except subprocess.TimeoutExpired:

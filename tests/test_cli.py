@@ -19,8 +19,18 @@ def run_json(capsys, *args):
 
 def test_solve_json_contract_and_rho_scale(capsys):
     base = run_json(capsys, "--formulation", "local_explicit")
-    for key in ("formulation", "u0", "u", "iterations", "converged", "status",
-                "primal_residual", "dual_residual", "rho", "solve_time_s"):
+    for key in (
+        "formulation",
+        "u0",
+        "u",
+        "iterations",
+        "converged",
+        "status",
+        "primal_residual",
+        "dual_residual",
+        "rho",
+        "solve_time_s",
+    ):
         assert key in base
     assert base["converged"]
     scaled = run_json(capsys, "--rho-scale", "2,0.5", "--relaxation", "1.6")

@@ -140,7 +140,9 @@ def test_printed_equal_weight_average_is_not_exact():
     solver = LocalExplicit(T, **TIGHT)
     setup = solver.setup(d, jnp.array([0.3, 15.0]))
     st = solver.init(setup)
-    st = jax.jit(lambda s: jax.lax.fori_loop(0, 6000, lambda _, x: equal_weight_step(solver, setup, x), s))(st)
+    st = jax.jit(
+        lambda s: jax.lax.fori_loop(0, 6000, lambda _, x: equal_weight_step(solver, setup, x), s)
+    )(st)
     wrong = solver.result(setup, st).u0
     ref = solve_reference(T, d).u[0]
     right = jax.jit(solver.solve)(d, jnp.array([0.3, 15.0])).u0
@@ -172,9 +174,14 @@ def test_general_constraint_rows():
     names = [a.name for a in base.agents]
     con = {"A": {names[0]: [[1.0]], names[1]: [[1.0]]}, "b": [0.2]}
     p = Problem(
-        horizon=base.horizon, A=base.A, x0=base.x0, agents=base.agents,
+        horizon=base.horizon,
+        A=base.A,
+        x0=base.x0,
+        agents=base.agents,
         objectives=base.objectives,
-        constraints=[__import__("ampc_jax.topology", fromlist=["Constraint"]).Constraint(con["A"], con["b"])],
+        constraints=[
+            __import__("ampc_jax.topology", fromlist=["Constraint"]).Constraint(con["A"], con["b"])
+        ],
     )
     T, d = p.topology, p.data()
     res = jax.jit(LocalExplicit(T, **TIGHT).solve)(d)

@@ -35,4 +35,6 @@ def test_flags_appended_once_and_user_flags_kept():
 
 
 def test_opt_out_keeps_xla_flags_untouched():
-    assert _flags(AMPC_KEEP_XLA_FLAGS="1", XLA_FLAGS="--xla_dump_to=/tmp/y") == "--xla_dump_to=/tmp/y"
+    assert (
+        _flags(AMPC_KEEP_XLA_FLAGS="1", XLA_FLAGS="--xla_dump_to=/tmp/y") == "--xla_dump_to=/tmp/y"
+    )

@@ -19,8 +19,13 @@ def base() -> dict:
         "x0": [0.0, 0.0, 0.0],
         "agents": [
             {"name": "a", "B": [[0.0], [1.0], [0.0]], "R": [0.1], "lb": [-1], "ub": [1]},
-            {"name": "b", "B": [[0.0, 0.0], [0.5, 0.0], [0.0, 1.0]], "R": [0.1, 0.2],
-             "lb": [-1, -1], "ub": [1, 1]},
+            {
+                "name": "b",
+                "B": [[0.0, 0.0], [0.5, 0.0], [0.0, 1.0]],
+                "R": [0.1, 0.2],
+                "lb": [-1, -1],
+                "ub": [1, 1],
+            },
             {"name": "c", "B": [[0.0], [0.0], [1.0]], "R": [[0.3]], "lb": [-2], "ub": [2]},
         ],
         "objectives": [
@@ -112,19 +117,35 @@ BAD = [
     (("w",), [[0, 0, 0]] * 4, r"w: expected 3 numbers or a 5 x 3 sequence"),
     (("agents", 0, "B"), [[1.0], [0.0]], r"agents\[0\]\.B \(a\): expected an 3 x n_u matrix"),
     (("agents", 1, "name"), "a", r"agents\[1\]\.name: duplicate agent name 'a'"),
-    (("agents", 1, "R"), [0.1, -0.2], r"agents\[1\]\.R \(b\): must be positive semi-definite, not negative"),
+    (
+        ("agents", 1, "R"),
+        [0.1, -0.2],
+        r"agents\[1\]\.R \(b\): must be positive semi-definite, not negative",
+    ),
     (("agents", 1, "R"), [[0.1, 0.05], [0.0, 0.2]], r"agents\[1\]\.R \(b\): must be symmetric"),
-    (("agents", 1, "R"), [0.1, 0.2, 0.3], r"agents\[1\]\.R \(b\): expected 2 x 2 or a diagonal of length 2"),
+    (
+        ("agents", 1, "R"),
+        [0.1, 0.2, 0.3],
+        r"agents\[1\]\.R \(b\): expected 2 x 2 or a diagonal of length 2",
+    ),
     (("agents", 0, "lb"), [2.0], r"agents\[0\]\.lb \(a\): lb > ub at input 0"),
     (("agents", 0, "ub"), [math.nan], r"agents\[0\]\.ub \(a\): contains NaN"),
     (("agents", 0, "B"), KeyError, r"agents\[0\]\.B: required key is missing"),
     (("objectives", 0, "Q"), [0.0], r"objectives\[0\]\.Q \(pos\): must be positive definite"),
     (("objectives", 0, "Q"), [-1.0], r"objectives\[0\]\.Q \(pos\): must be positive definite"),
     (("objectives", 1, "Q"), [[1.0, 2.0], [2.0, 1.0]], r"objectives\[1\]\.Q \(z\): expected 1 x 1"),
-    (("objectives", 0, "C"), [[1.0, 0.0]], r"objectives\[0\]\.C \(pos\): expected an n_y x 3 matrix"),
+    (
+        ("objectives", 0, "C"),
+        [[1.0, 0.0]],
+        r"objectives\[0\]\.C \(pos\): expected an n_y x 3 matrix",
+    ),
     (("objectives", 0, "ref"), [1.0, 2.0], r"objectives\[0\]\.ref \(pos\): expected 1 numbers"),
     (("objectives", 0, "ref"), [math.nan], r"objectives\[0\]\.ref \(pos\): contains NaN"),
-    (("objectives", 0, "agents"), ["a", "nope"], r"objectives\[0\]\.agents \(pos\): unknown agent 'nope'"),
+    (
+        ("objectives", 0, "agents"),
+        ["a", "nope"],
+        r"objectives\[0\]\.agents \(pos\): unknown agent 'nope'",
+    ),
     (("objectives", 1, "name"), "pos", r"objectives\[1\]\.name: duplicate objective name 'pos'"),
     (("agents",), [], r"agents: expected a non-empty list"),
     (("objectives",), [], r"objectives: expected a non-empty list"),
@@ -165,7 +186,10 @@ def test_uncovered_input_refused_for_local_explicit():
     d["agents"][2]["lb"] = [-math.inf]
     d["agents"][2]["ub"] = [math.inf]
     p = Problem.from_dict(d)  # fine for the integrated MPC
-    with pytest.raises(ProblemError, match=r"agents\[2\] \(c\): input 0 appears in no constraint row.*NOTES item 10"):
+    with pytest.raises(
+        ProblemError,
+        match=r"agents\[2\] \(c\): input 0 appears in no constraint row.*NOTES item 10",
+    ):
         p.check_local_explicit()
 
 
