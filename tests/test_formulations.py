@@ -54,6 +54,15 @@ def test_matches_integrated_optimum(n_obj, shared):
 
 
 @pytest.mark.parametrize("n_obj,shared", [(2, "all"), (3, "both")])
+def test_formed_lowrank_inverse_matches_integrated_optimum(n_obj, shared):
+    """Woodbury K^-1 formed once per step instead of applied in factored form."""
+    problems = [random_problem(seed, n_obj, shared=shared) for seed in range(6)]
+    solver = LocalExplicit(problems[0].topology, inverse="formed", **TIGHT)
+    assert solver.lowrank and not solver.factored
+    compare_batch(problems, solver)
+
+
+@pytest.mark.parametrize("n_obj,shared", [(2, "all"), (3, "both")])
 def test_dense_factorisation_matches_integrated_optimum(n_obj, shared):
     """The Cholesky path (taken when objectives have as many outputs as inputs)."""
     problems = [random_problem(seed, n_obj, shared=shared) for seed in range(6)]
@@ -63,15 +72,23 @@ def test_dense_factorisation_matches_integrated_optimum(n_obj, shared):
 
 
 @pytest.mark.parametrize("horizon", [3, 10])
-def test_lowrank_and_dense_setups_agree(horizon):
-    """Woodbury setup (rho's power iteration matrix-free) against the dense one
-    (formed operators, Cholesky of H)."""
+@pytest.mark.parametrize("inverse", ["formed", "factored"])
+def test_lowrank_and_dense_setups_agree(horizon, inverse):
+    """Woodbury setup (rho's power iteration matrix-free; K^-1 formed or kept
+    factored) against the dense one (formed operators, Cholesky of H)."""
+    from ampc_jax.formulations import _apply_inverse
+
     p = random_problem(7, 3, shared="both", horizon=horizon)
     T, d = p.topology, p.data()
-    lo = LocalExplicit(T, factorisation="lowrank").setup(d)
+    lo_solver = LocalExplicit(T, factorisation="lowrank", inverse=inverse)
+    assert lo_solver.factored == (inverse == "factored")
+    lo = lo_solver.setup(d)
     de = LocalExplicit(T, factorisation="dense").setup(d)
+    n = de.Kinv.shape[-1]
+    eye = jnp.broadcast_to(jnp.eye(n), (T.n_objectives, n, n))
+    lo_K = jax.vmap(lambda x: _apply_inverse(lo.Kinv, x), in_axes=2, out_axes=2)(eye)
     np.testing.assert_allclose(lo.rho, de.rho, rtol=1e-6)
-    np.testing.assert_allclose(lo.Kinv, de.Kinv, rtol=1e-7, atol=1e-9 * np.abs(de.Kinv).max())
+    np.testing.assert_allclose(lo_K, de.Kinv, rtol=1e-7, atol=1e-9 * np.abs(de.Kinv).max())
     np.testing.assert_allclose(lo.KE, de.KE, rtol=1e-7, atol=1e-9 * np.abs(de.KE).max())
 
 
@@ -92,6 +109,8 @@ def test_bad_solver_settings_name_the_field():
         ({"relaxation": 2.0}, "relaxation"),
         ({"rho_method": "lanczos"}, "rho_method"),
         ({"factorisation": "qr"}, "factorisation"),
+        ({"inverse": "lu"}, "inverse"),
+        ({"factorisation": "dense", "inverse": "factored"}, "inverse"),
         ({"rho_iterations": 0}, "rho_iterations"),
     ]:
         with pytest.raises(ValueError, match=field):
