@@ -324,10 +324,11 @@ def test_warm_start_shift_converges_to_same_and_saves_iterations():
         shift_state(first.state, 2)
 
 
-def test_fixed_iterations_gradient_matches_finite_differences():
+@pytest.mark.parametrize("inverse", ["formed", "factored"])
+def test_fixed_iterations_gradient_matches_finite_differences(inverse):
     p = random_problem(7, 2, shared="all", reference_scale=0.5)
     T, d = p.topology, p.data()
-    solver = LocalExplicit(T)
+    solver = LocalExplicit(T, factorisation="lowrank", inverse=inverse)
 
     def f(ref0, rho):
         dd = d._replace(ref=(d.ref[0] + ref0,) + d.ref[1:])
