@@ -524,10 +524,11 @@ def _power_rho(H: Any, Hinv: Any, LamB: Any, mask: Any, iterations: int) -> Any:
     # H^-1 and Lambda symmetric, (I (x) B) applied to the rows of M is M (I (x) B)
     LiH = jnp.swapaxes(_blocks(_spd_inverse(LamB), H), 1, 2)  # Lambda^-1 H
     HiL = _blocks(LamB, Hinv)  # H^-1 Lambda
+    ops = jnp.stack([LiH, HiL], axis=1)  # (J, 2, n, n): one chain each
     v = _power_start(mask, H.dtype)
 
     def body(_: Any, v: Any) -> Any:
-        v = jnp.einsum("jpab,jpb->jpa", jnp.stack([LiH, HiL], axis=1), v)
+        v = jnp.einsum("jpab,jpb->jpa", ops, v)
         return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
 
     v = jax.lax.fori_loop(0, iterations, body, v)
