@@ -285,7 +285,10 @@ def _small_cholesky(A: Any) -> Any:
         for c in cols:
             a = a - c * c[..., k : k + 1]
         piv = a[..., k : k + 1]
-        d = jnp.sqrt(jnp.maximum(piv, 0.0))
+        pos = piv > 0
+        # the inner where keeps sqrt's derivative finite at a zero pivot (a NaN
+        # there would leak into gradients through the outer where)
+        d = jnp.where(pos, jnp.sqrt(jnp.where(pos, piv, 1.0)), 0.0)
         safe = jnp.where(d > 0, d, 1.0)
         mask = jnp.asarray(np.arange(m) >= k, A.dtype)
         cols.append(jnp.where(d > 0, a / safe, 0.0) * mask)

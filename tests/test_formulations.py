@@ -1,5 +1,7 @@
 """Local Explicit against the independent integrated optimum (Clarabel), and its machinery."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -342,6 +344,32 @@ def test_fixed_iterations_gradient_matches_finite_differences(inverse):
     e = jnp.array([1.0, 0.0])
     fd_rho = (f(0.1, rho + h * e) - f(0.1, rho - h * e)) / (2 * h)
     np.testing.assert_allclose(g_rho[0], fd_rho, rtol=1e-4, atol=1e-9)
+
+
+def test_gradient_wrt_Q_with_padded_outputs():
+    """Objectives with different output counts pad Q with zero weight; the
+    Cholesky of that semidefinite block must keep d/dQ finite (low-rank path)."""
+    p = random_problem(3, 2, shared="all", states_per_objective=2, reference_scale=0.5)
+    T, d = p.topology, p.data()
+    # give objective 0 a second output, so objective 1's Q is padded
+    C0 = jnp.concatenate([d.C[0], d.C[0][:1] * 0.5], axis=0)
+    d = d._replace(
+        C=(C0,) + d.C[1:],
+        Q=(jnp.diag(jnp.concatenate([jnp.diag(d.Q[0]), jnp.ones(1)])),) + d.Q[1:],
+        ref=(jnp.concatenate([d.ref[0], d.ref[0][:, :1]], axis=1),) + d.ref[1:],
+    )
+    T = dataclasses.replace(T, output_sizes=(C0.shape[0],) + tuple(T.output_sizes[1:]))
+    solver = LocalExplicit(T, factorisation="lowrank")
+
+    def f(q):
+        Q1 = d.Q[1] * q
+        return jnp.sum(solver.solve_fixed(d._replace(Q=(d.Q[0], Q1)), 40, rho=2.0).u0 ** 2)
+
+    g = jax.jit(jax.grad(f))(1.0)
+    h = 1e-6
+    fd = (f(1.0 + h) - f(1.0 - h)) / (2 * h)
+    assert np.isfinite(g)
+    np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-9)
 
 
 def test_three_objectives_convergence_measured():
