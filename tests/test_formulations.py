@@ -55,6 +55,47 @@ def test_matches_integrated_optimum(n_obj, shared):
     assert np.max(rho.max(1) / rho.min(1)) > 2
 
 
+@pytest.fixture
+def all_rows_layout(monkeypatch):
+    """Force the all-rows (masked) layout, used when an objective carries every row."""
+    import ampc_jax.formulations as F
+
+    monkeypatch.setattr(F, "_COMPACT_ROWS", float("inf"))
+    F._layout.cache_clear()
+    yield
+    F._layout.cache_clear()
+
+
+@pytest.mark.parametrize("n_obj,shared", [(2, "chain"), (3, "both")])
+def test_all_rows_layout_matches_integrated_optimum(n_obj, shared, all_rows_layout):
+    from ampc_jax.formulations import _layout
+
+    problems = [random_problem(seed, n_obj, shared=shared) for seed in range(6)]
+    T = problems[0].topology
+    assert not _layout(T).compact and T.n_c > _layout(T).rows.shape[1]
+    compare_batch(problems, LocalExplicit(T, **TIGHT))
+
+
+def test_row_layouts_give_the_same_iterates(monkeypatch):
+    import ampc_jax.formulations as F
+
+    p = random_problem(4, 3, shared="both")
+    T, d = p.topology, p.data()
+    solver = LocalExplicit(T, relaxation=1.6)
+    runs = []
+    for factor in (1.0, float("inf")):
+        monkeypatch.setattr(F, "_COMPACT_ROWS", factor)
+        F._layout.cache_clear()
+        assert F._layout(T).compact == (factor == 1.0)
+        runs.append(jax.jit(lambda x: solver.solve_fixed(x, 30))(d))
+    F._layout.cache_clear()
+    compact, all_rows = runs
+    np.testing.assert_allclose(all_rows.u, compact.u, rtol=1e-9, atol=1e-9)
+    for a, b in zip(all_rows.state.gamma, compact.state.gamma, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(all_rows.state.Z, compact.state.Z, rtol=1e-9, atol=1e-9)
+
+
 @pytest.mark.parametrize("n_obj,shared", [(2, "all"), (3, "both")])
 def test_formed_lowrank_inverse_matches_integrated_optimum(n_obj, shared):
     """Woodbury K^-1 formed once per step instead of applied in factored form."""
@@ -140,9 +181,9 @@ def equal_weight_step(solver, setup, state):
     Ain, b = [], []
     for j in range(T.n_objectives):
         rows = solver._rows(j)
-        # the setup holds all rows in the problem's numbering, inputs padded
-        Ain.append(setup.Ain[j][rows, : out.U[j].shape[1]])
-        b.append(setup.b[j][:, rows])
+        Aj, bj = solver.objective_constraints(setup, j)
+        Ain.append(Aj)
+        b.append(bj)
         v = -(out.U[j] @ Ain[j].T) - state.gamma[j] / setup.rho[j] + b[j]
         num = num.at[:, rows].add(v)
         count = count.at[:, rows].add(1.0)
@@ -218,7 +259,7 @@ def test_opt_rho_box_form_notes_16():
     H, _ = local_costs(T, d)
     setup = LocalExplicit(T, rho_method="eigh").setup(d)
     for j in range(T.n_objectives):
-        Ain = np.asarray(setup.Ain[j][T.group_rows(j), : len(T.group_columns(j))])
+        Ain = np.asarray(LocalExplicit(T).objective_constraints(setup, j)[0])
         lam = np.linalg.eigvalsh(np.asarray(H[j]))
         np.testing.assert_allclose(setup.rho[j], np.sqrt(lam[0] * lam[-1]) / 2, rtol=1e-9)
         # general (known-rank) path agrees on a full-rank problem
