@@ -18,7 +18,10 @@ functions, timed interleaved step by step (median of ``--repeats`` calls,
 * IntegratedADMM warm started from its own previous solution (the r_time peer);
 * ``jaxopt.BoxOSQP`` (dense "lu" linear solves; its default "cg" needed
   4000 iterations at tol 1e-3 on the cruise run), for each ``tol`` of
-  ``--osqp-tols``, warm started from its own previous solution. Its ``tol``
+  ``--osqp-tols``: cold at the first step, then warm started from its own
+  previous solution by the loop's rule (shifted one step when the example
+  shifts, ``warm_shift``; cold after a non-finite step or without warm start).
+  Its u0 is projected on the bounds, like the others'. Its ``tol``
   is on residual norms of the unscaled QP, so its accuracy is read from
   e_sub, not from the number.
 
@@ -114,8 +117,17 @@ def run_scenario(name: str, tols: list[float], repeats: int) -> list[dict[str, A
             first, _ = jax.jit(fn)(datas[0], None)
             peers[f"BoxOSQP {method}, tol {tol:g}"] = (
                 jax.jit(fn).lower(datas[0], first).compile(),
-                first,
+                jax.tree.map(jnp.zeros_like, first),  # its cold start
             )
+
+    def shift_params(params: Any) -> Any:
+        """The MPC warm start of the other two solvers: one step along the horizon."""
+
+        def sh(x: Any) -> Any:
+            x = x.reshape(T.horizon, -1)
+            return jnp.concatenate([x[1:], x[-1:]]).reshape(-1)
+
+        return jax.tree.map(sh, params) if shift else params
 
     rows: dict[str, dict[str, list]] = {}
 
@@ -126,7 +138,7 @@ def run_scenario(name: str, tols: list[float], repeats: int) -> list[dict[str, A
         r["it"].append(int(its))
 
     w_i = cold_i
-    osqp_warm = {label: init for label, (_, init) in peers.items()}
+    osqp_warm = {label: cold for label, (_, cold) in peers.items()}
     for k in range(K):
         t, r = _timed(f_le, datas[k], None, warms[k], repeats=repeats)
         record("Local Explicit", t, r.u0, r.iterations)
@@ -134,11 +146,14 @@ def run_scenario(name: str, tols: list[float], repeats: int) -> list[dict[str, A
         record("IntegratedADMM", t, r.u0, r.iterations)
         ok = (int(r.status) <= 1) and bool(np.all(np.isfinite(np.asarray(r.u0))))
         w_i = shift_state(r.state, shift) if (ok and cfg.warm_start) else cold_i
-        for label, (fn, _) in peers.items():
+        lb0, ub0 = np.asarray(datas[k].lb[0]), np.asarray(datas[k].ub[0])
+        for label, (fn, cold) in peers.items():
             t, (params, its) = _timed(fn, datas[k], osqp_warm[label], repeats=repeats)
             x = np.asarray(params.primal[0])
-            record(label, t, x.reshape(T.horizon, -1)[0], its)
-            osqp_warm[label] = params
+            # projected on the bounds, as the other two solvers' u0 and the shadow's
+            record(label, t, np.clip(x.reshape(T.horizon, -1)[0], lb0, ub0), its)
+            ok = bool(np.all(np.isfinite(x)))
+            osqp_warm[label] = shift_params(params) if (ok and cfg.warm_start) else cold
         if k % 50 == 0:
             print(f"  [{name}: step {k}/{K}]", file=sys.stderr, flush=True)
 
