@@ -124,7 +124,9 @@ class _Layout(NamedTuple):
     umask: np.ndarray  # (J, U) 1 for a real input
     carried: np.ndarray  # (J, n_c) 1 where objective j carries constraint row c
     compact: bool  # rows gathered per objective (see _COMPACT_ROWS) instead of all n_c
-    rows: np.ndarray  # (J, C) compact: constraint row of each padded row; n_c for padding
+    rows: np.ndarray  # (J, R) constraint row behind each of objective j's R rows; n_c (a
+    # zero row) for padding or a row j does not carry. Compact: R = C, j's own rows
+    # first; otherwise R = n_c in the problem's numbering.
     inv: np.ndarray  # (J, n_c) compact: padded row of objective j carrying row c; C if none
     P: np.ndarray  # (J, U, n_u) 0/1 selection: padded column -> input
     scale: np.ndarray  # (J, U) 1 / m_(i) of each column's agent (0 for padding)
@@ -160,6 +162,8 @@ def _layout(topology: Topology) -> _Layout:
         rows[j, : len(rj)] = rj
         inv[j, rj] = np.arange(len(rj))
     compact = T.n_c > _COMPACT_ROWS * C
+    if not compact:
+        rows = np.where(carried > 0, np.arange(T.n_c), T.n_c).astype(np.int32)
     umask = (cols < T.n_u).astype(np.float64)
     full = tuple(T.group_rank[j] == u_sizes[j] for j in range(J))
     return _Layout(
@@ -749,16 +753,16 @@ class LocalExplicit:
     def _rows(self, j: int) -> np.ndarray:
         return np.asarray(self.topology.group_rows(j), dtype=np.int32)
 
+    def _own(self, j: int) -> np.ndarray:
+        """Positions of objective j's own rows (``Topology.group_rows(j)`` order)
+        among its R rows in the setup and the loop carry, in either row layout."""
+        return np.flatnonzero(_layout(self.topology).rows[j] < self.topology.n_c)
+
     def objective_constraints(self, setup: LocalSetup, j: int) -> tuple[Any, Any]:
         """(A_in,j (n_c,j x n_u,j), bbar_j (N_p x n_c,j)): objective j's own rows in
         the order of ``Topology.group_rows(j)``, whatever the setup's row layout."""
-        lay = _layout(self.topology)
-        u = lay.u_sizes[j]
-        if lay.compact:
-            c = lay.c_sizes[j]
-            return setup.Ain[j, :c, :u], setup.b[j][:, :c]
-        rows = self._rows(j)
-        return setup.Ain[j][rows, :u], setup.b[j][:, rows]
+        own, u = self._own(j), _layout(self.topology).u_sizes[j]
+        return setup.Ain[j][own, :u], setup.b[j][:, own]
 
     # -- per-step setup -----------------------------------------------------------
     @property
@@ -812,16 +816,11 @@ class LocalExplicit:
         need_H = not self.lowrank or self.rho_method == "eigh" or not all(lay.full)
         c = _padded_costs(T, data, with_H=need_H)
         dt = c.E.dtype
-        M = jnp.asarray(lay.carried, dt)  # (J, n_c)
-        if lay.compact:
-            Aix = jnp.pad(data.Ain, ((0, 1), (0, 1)))  # padded row / column index -> 0
-            Ain = Aix[lay.rows[:, :, None], lay.cols[:, None, :]]  # (J, C, U)
-            bx = jnp.pad(data.bin, ((0, 0), (0, 1)))
-            b = jnp.moveaxis(bx[:, lay.rows], 1, 0)  # (J, N, C)
-        else:
-            Aix = jnp.pad(data.Ain, ((0, 0), (0, 1)))  # padded column index -> 0
-            Ain = jnp.moveaxis(Aix[:, lay.cols], 1, 0) * M[:, :, None]  # (J, n_c, U)
-            b = data.bin[None] * M[:, None, :]  # (J, N, n_c)
+        # each objective's R rows (lay.rows; a padded index reads a zero row)
+        Aix = jnp.pad(data.Ain, ((0, 1), (0, 1)))  # padded row / column index -> 0
+        Ain = Aix[lay.rows[:, :, None], lay.cols[:, None, :]]  # (J, R, U)
+        bx = jnp.pad(data.bin, ((0, 0), (0, 1)))
+        b = jnp.moveaxis(bx[:, lay.rows], 1, 0)  # (J, N, R)
         AtA = jnp.einsum("jcu,jcv->juv", Ain, Ain)
         if rho is None:
             scale = np.broadcast_to(np.asarray(self.rho_scale, dtype=float), (J,))
@@ -841,7 +840,7 @@ class LocalExplicit:
         else:
             Kinv = _spd_inverse(c.H + _block_diag(rho_arr[:, None, None] * AtA, N))
         KE = _apply_inverse(Kinv, c.E)
-        den = rho_arr @ M
+        den = rho_arr @ jnp.asarray(lay.carried, dt)
         return LocalSetup(
             Ain=Ain,
             b=b,
@@ -907,7 +906,7 @@ class LocalExplicit:
             if not full[j]:
                 u = lay.u_sizes[j]
                 Hj = _unpad_matrix(H[j], u, U, N)
-                Aj = Ain[j, : lay.c_sizes[j], :u] if lay.compact else Ain[j][self._rows(j), :u]
+                Aj = Ain[j][self._own(j), :u]
                 out[j] = optimal_rho(Hj, Aj, N, T.group_rank[j])
         return jnp.stack(out)
 
@@ -934,16 +933,13 @@ class LocalExplicit:
         lay = _layout(T)
         J, U = lay.cols.shape
         Up = jnp.stack([jnp.pad(u, ((0, 0), (0, U - u.shape[1]))) for u in state.U])
-        if lay.compact:
-            C = lay.rows.shape[1]
-            gp = jnp.stack([jnp.pad(g, ((0, 0), (0, C - g.shape[1]))) for g in state.gamma])
-        else:
-            gp = jnp.stack(
-                [
-                    jnp.zeros((T.horizon, T.n_c), g.dtype).at[:, self._rows(j)].set(g)
-                    for j, g in enumerate(state.gamma)
-                ]
-            )
+        R = lay.rows.shape[1]
+        gp = jnp.stack(
+            [
+                jnp.zeros((T.horizon, R), g.dtype).at[:, self._own(j)].set(g)
+                for j, g in enumerate(state.gamma)
+            ]
+        )
         return _Flat(
             Z=state.Z,
             gamma=gp,
@@ -961,12 +957,7 @@ class LocalExplicit:
         return ADMMState(
             U=tuple(U3[j, :, :u] for j, u in enumerate(lay.u_sizes)),
             Z=flat.Z,
-            gamma=tuple(
-                flat.gamma[j][:, : lay.c_sizes[j]]
-                if lay.compact
-                else flat.gamma[j][:, self._rows(j)]
-                for j in range(T.n_objectives)
-            ),
+            gamma=tuple(flat.gamma[j][:, self._own(j)] for j in range(T.n_objectives)),
             iteration=flat.iteration,
             primal=flat.primal,
             dual=flat.dual,
