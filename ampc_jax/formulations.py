@@ -188,9 +188,9 @@ def _layout(topology: Topology) -> _Layout:
 # the global step then needs no gather (batched at N_p = 10, 0.90 against
 # 1.13 us per iteration gathered). Otherwise (n_c > _COMPACT_ROWS * C) each
 # objective's own rows are gathered into C padded rows: with all rows, generated
-# chains of J objectives (N_p = 10, one problem) cost 1.1x per iteration at
-# J = 2, 1.9x at J = 8 and 3.8x at J = 16, and the closed-loop cruise step
-# (n_c = 8, C = 6) about 1 us more.
+# chains of J objectives (N_p = 10, one problem, K^-1 formed or factored) cost
+# 1.1x to 1.2x per iteration at J = 2, 1.8x to 2.1x at J = 8 and 3.3x to 3.8x
+# at J = 16, and the closed-loop cruise step (n_c = 8, C = 6) about 1 us more.
 _COMPACT_ROWS = 1.0
 
 
