@@ -623,6 +623,131 @@ def _power_rho_lowrank(
     return _rho_from_quotients(rq)
 
 
+_ANDERSON_MAX = 3
+"""Largest Anderson memory (its m x m least-squares system is solved in closed form)."""
+_ANDERSON_REG = 1e-8
+"""Tikhonov weight of the Anderson least squares, relative to trace(dF dF')
+(at least 1e3 machine epsilons, so float32 stays well conditioned)."""
+_ANDERSON_SAFEGUARD = 2.0
+"""An extrapolated point whose fixed-point residual exceeds this factor times
+the previous one is dropped: the history restarts from the last accepted image."""
+
+
+class _Anderson(NamedTuple):
+    """Anderson acceleration's carry (x: the iterate (Z, gamma) flattened).
+
+    The m past points and their images sit in a ring of separate vectors, not
+    stacked, and are overwritten in place: XLA:CPU runs a loop body's kernels
+    inline only while every buffer is small (512 bytes), and a stacked
+    history made it switch to its thread-pool executor, which cost more than
+    the iterations it saved on the vehicle examples.
+    """
+
+    x: Any  # (n,) where the ADMM map is evaluated next
+    X: tuple  # m past points (n,), a ring
+    G: tuple  # their images under the ADMM map
+    valid: Any  # (m,) which ring slots hold a point
+    pos: Any  # () the slot the next accepted point overwrites
+    fprev: Any  # () ||g - x|| at the last accepted point (inf after a restart)
+
+
+def _solve_small(A: Any, b: Any) -> Any:
+    """x with A x = b for one (m, m) A, m <= 3, by Cramer's rule.
+
+    Elementwise formulas, which XLA fuses into one kernel (an unrolled
+    factorisation was a dozen kernels per iteration on XLA:CPU). A is the
+    regularised Gram matrix of :func:`_anderson_step`, so det(A) > 0.
+    """
+    m = A.shape[-1]
+    if m == 1:
+        return b / A[0]
+    if m == 2:
+        det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
+        return jnp.stack([A[1, 1] * b[0] - A[0, 1] * b[1], A[0, 0] * b[1] - A[1, 0] * b[0]]) / det
+    c00 = A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1]
+    c01 = A[1, 2] * A[2, 0] - A[1, 0] * A[2, 2]
+    c02 = A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]
+    det = A[0, 0] * c00 + A[0, 1] * c01 + A[0, 2] * c02
+    adj = jnp.stack(
+        [
+            jnp.stack(
+                [c00, A[0, 2] * A[2, 1] - A[0, 1] * A[2, 2], A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]]
+            ),
+            jnp.stack(
+                [c01, A[0, 0] * A[2, 2] - A[0, 2] * A[2, 0], A[0, 2] * A[1, 0] - A[0, 0] * A[1, 2]]
+            ),
+            jnp.stack(
+                [c02, A[0, 1] * A[2, 0] - A[0, 0] * A[2, 1], A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]]
+            ),
+        ]
+    )
+    return jnp.sum(adj * b[None, :], axis=1) / det
+
+
+def _anderson_init(x: Any, m: int) -> _Anderson:
+    # empty slots (valid = 0) hold x itself, not zeros: constant-filled buffers
+    # would be independent nodes in XLA:CPU's thunk graph (see _Anderson)
+    z = tuple(x for _ in range(m))
+    return _Anderson(
+        x, z, z, jnp.zeros((m,), x.dtype), jnp.zeros((), jnp.int32), jnp.asarray(jnp.inf, x.dtype)
+    )
+
+
+def _anderson_step(a: _Anderson, g: Any) -> _Anderson:
+    """Next point of type-II Anderson acceleration, given g = T(a.x).
+
+    With f = g - x and the differences to the m last accepted points and
+    images, dF_i = f - (g_i - x_i), dG_i = g - g_i::
+
+        theta = argmin ||f - sum_i theta_i dF_i||^2 + lambda ||theta||^2,
+        x_next = g - sum_i theta_i dG_i
+
+    (Walker and Ni 2011; lambda = ``_ANDERSON_REG`` trace(dF dF')). Safeguard:
+    when ||f|| > ``_ANDERSON_SAFEGUARD`` times the last accepted residual, the
+    point is dropped and the iteration restarts, plainly, from the last
+    accepted image. All inner products come from one Gram matrix of (dF, f).
+    """
+    m = len(a.X)
+    dt = g.dtype
+    f = g - a.x
+    dF = [(f - a.G[i] + a.X[i]) * a.valid[i] for i in range(m)]
+    dG = [(g - a.G[i]) * a.valid[i] for i in range(m)]
+    V = dF + [f]
+    pairs = [(i, j) for i in range(m + 1) for j in range(i, m + 1)]
+    # one variadic reduction over all the products, which XLA fuses with them
+    # into one kernel (a stacked V or stacked products would be buffers of
+    # their own, and separate sums a kernel each)
+    dots = jax.lax.reduce(
+        tuple(V[i] * V[j] for i, j in pairs),
+        tuple(jnp.zeros((), dt) for _ in pairs),
+        lambda u, w: tuple(p + q for p, q in zip(u, w, strict=True)),
+        (0,),
+    )
+    at = {p: k for k, p in enumerate(pairs)}
+    gram = jnp.stack(
+        [jnp.stack([dots[at[min(i, j), max(i, j)]] for j in range(m + 1)]) for i in range(m + 1)]
+    )  # (m + 1, m + 1)
+    A, b = gram[:m, :m], gram[:m, m]
+    fn = jnp.sqrt(gram[m, m])
+    reject = jnp.any(a.valid > 0) & (fn > _ANDERSON_SAFEGUARD * a.fprev)
+    reg = max(_ANDERSON_REG, 1e3 * float(jnp.finfo(dt).eps))
+    A = A + jnp.diag(1.0 - a.valid + reg * jnp.trace(A) + jnp.finfo(dt).tiny)
+    theta = _solve_small(A, b)
+    theta = jnp.where(jnp.all(jnp.isfinite(theta)), theta, 0.0)
+    x_aa = g - sum(theta[i] * dG[i] for i in range(m))
+    slot = jnp.arange(m) == a.pos
+    last = jnp.arange(m) == (a.pos - 1) % m
+    write = slot & ~reject
+    return _Anderson(
+        x=jnp.where(reject, sum(a.G[i] * last[i] for i in range(m)), x_aa),
+        X=tuple(jnp.where(write[i], a.x, a.X[i]) for i in range(m)),
+        G=tuple(jnp.where(write[i], g, a.G[i]) for i in range(m)),
+        valid=jnp.where(reject, last, slot | (a.valid > 0)).astype(dt),
+        pos=jnp.where(reject, a.pos, (a.pos + 1) % m).astype(jnp.int32),
+        fprev=jnp.where(reject, jnp.inf, fn).astype(dt),
+    )
+
+
 def shift_state(state: ADMMState, steps: int = 1) -> ADMMState:
     """Warm start: the previous step's iterate shifted along the horizon.
 
@@ -696,6 +821,15 @@ class LocalExplicit:
         forming) or ``"auto"`` (factored when every objective has fewer than
         half as many outputs as inputs per step, see :attr:`factored`). The
         dense factorisation is always formed.
+    anderson : memory m of Anderson acceleration (type II, Walker and Ni 2011)
+        of the ADMM map (Z, gamma) -> (Z+, gamma+), at most 3; 0 (default) is the paper's
+        plain iteration. Each iteration still evaluates the map once (the
+        iteration count is the number of local solves); the next point is the
+        combination of the last m + 1 images that minimises the linearised
+        fixed-point residual (:func:`_anderson_step`), with a safeguard that
+        falls back to the plain step when the residual grows. The fixed points,
+        and so the solution, are ADMM's. On the vehicle examples m = 3 cut the
+        warm-started iteration count's 95th percentile from 17.2 to 14 (cruise).
 
     Use :meth:`solve` for deployment (early stop) and :meth:`solve_fixed` for
     differentiation (fixed iteration count under ``lax.scan``). Both are pure
@@ -713,6 +847,7 @@ class LocalExplicit:
     relaxation: float = 1.0
     factorisation: str = "auto"
     inverse: str = "auto"
+    anderson: int = 0
 
     def __post_init__(self) -> None:
         if self.dual_residual not in ("slack", "paper"):
@@ -748,6 +883,16 @@ class LocalExplicit:
             )
         if not 0.0 < float(self.relaxation) < 2.0:
             raise ValueError(f"relaxation: expected a value in (0, 2), got {self.relaxation}")
+        if (
+            isinstance(self.anderson, bool)
+            or not isinstance(self.anderson, (int, np.integer))
+            or not 0 <= int(self.anderson) <= _ANDERSON_MAX
+        ):
+            raise ValueError(
+                f"anderson: expected an integer memory in 0..{_ANDERSON_MAX} "
+                f"(0 = plain ADMM), got {self.anderson!r}"
+            )
+        object.__setattr__(self, "anderson", int(self.anderson))
         self.topology.check_local_explicit()
 
     def _rows(self, j: int) -> np.ndarray:
@@ -1035,17 +1180,52 @@ class LocalExplicit:
             finite = jnp.all(jnp.isfinite(st.primal) | (st.iteration == 0))
             return (st.iteration < self.max_iter) & ~self.converged(st) & finite
 
-        flat = jax.lax.while_loop(cond, lambda st: self._step_flat(setup, st), self._flat(state))
+        if not self.anderson:
+            flat = jax.lax.while_loop(
+                cond, lambda st: self._step_flat(setup, st), self._flat(state)
+            )
+            return self._unflat(flat)
+        st0 = self._flat(state)
+        carry = (st0, _anderson_init(self._point(st0), self.anderson))
+        flat, _ = jax.lax.while_loop(
+            lambda c: cond(c[0]), lambda c: self._accelerated(setup, c), carry
+        )
         return self._unflat(flat)
 
     def run_fixed(self, setup: LocalSetup, state: ADMMState, iterations: int) -> ADMMState:
         """Exactly ``iterations`` iterations under ``lax.scan`` (differentiable)."""
+        st0 = self._flat(state)
+        if not self.anderson:
 
-        def body(st: _Flat, _: Any) -> tuple[_Flat, None]:
-            return self._step_flat(setup, st), None
+            def body(st: _Flat, _: Any) -> tuple[_Flat, None]:
+                return self._step_flat(setup, st), None
 
-        flat, _ = jax.lax.scan(body, self._flat(state), None, length=iterations)
+            flat, _ = jax.lax.scan(body, st0, None, length=iterations)
+            return self._unflat(flat)
+
+        def body_aa(c: tuple, _: Any) -> tuple[tuple, None]:
+            return self._accelerated(setup, c), None
+
+        carry = (st0, _anderson_init(self._point(st0), self.anderson))
+        (flat, _), _ = jax.lax.scan(body_aa, carry, None, length=iterations)
         return self._unflat(flat)
+
+    # -- Anderson acceleration (``anderson`` > 0) ------------------------------------
+    @staticmethod
+    def _point(st: _Flat) -> Any:
+        """The ADMM map's argument (Z, gamma), flattened (U is an output only)."""
+        return jnp.concatenate([st.Z.ravel(), st.gamma.ravel()])
+
+    @staticmethod
+    def _at(x: Any, st: _Flat) -> _Flat:
+        nz = st.Z.size
+        return st._replace(Z=x[:nz].reshape(st.Z.shape), gamma=x[nz:].reshape(st.gamma.shape))
+
+    def _accelerated(self, setup: LocalSetup, carry: tuple) -> tuple:
+        """One ADMM map evaluation at the Anderson point, then the next point."""
+        st, a = carry
+        out = self._step_flat(setup, self._at(a.x, st))
+        return out, _anderson_step(a, self._point(out))
 
     def result(self, setup: LocalSetup, state: ADMMState) -> SolveResult:
         """Consensus inputs (average of the copies, projected on the bounds) and status."""

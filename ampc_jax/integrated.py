@@ -108,6 +108,7 @@ class IntegratedADMM:
     rho_iterations: int = 8
     rho_scale: float = 1.0
     relaxation: float = 1.0
+    anderson: int = 0
 
     @property
     def inner(self) -> LocalExplicit:
@@ -121,6 +122,7 @@ class IntegratedADMM:
             rho_iterations=self.rho_iterations,
             rho_scale=self.rho_scale,
             relaxation=self.relaxation,
+            anderson=self.anderson,
         )
 
     def solve(self, data: ProblemData, rho: Any = None, warm: Any = None) -> SolveResult:

@@ -160,6 +160,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             relaxation=args.relaxation,
             integrated_rho_scale=args.integrated_rho_scale,
             warm_shift=args.warm_shift,
+            anderson=args.anderson,
         )
         if args.set:
             cfg = with_settings(cfg, **_parse_settings(args.set, cfg.settings))
@@ -245,7 +246,8 @@ def _summary(m: dict[str, Any]) -> None:
         )
         print(
             f"  solver          eps_r {m['tol_primal']:g}, eps_s {m['tol_dual']:g}, "
-            f"relaxation {m['relaxation']:g}, {scales}, warm_shift {m.get('warm_shift', 1)}"
+            f"relaxation {m['relaxation']:g}, {scales}, warm_shift {m.get('warm_shift', 1)}, "
+            f"anderson {m.get('anderson', 0)}"
         )
     if m["formulation"] != "none":
         print(
@@ -356,6 +358,14 @@ def add_cli_commands(sub: Any) -> None:
         default=None,
         help="warm start: 1 shifts the previous iterate one step along the horizon, "
         "0 holds it; default: the example's tuned value",
+    )
+    p.add_argument(
+        "--anderson",
+        type=int,
+        choices=(0, 1, 2, 3),
+        default=None,
+        help="Anderson acceleration memory for Local Explicit and the integrated MPC "
+        "(0 = plain ADMM, the paper); default: the example's value",
     )
     p.add_argument(
         "--integrated-rho-scale",

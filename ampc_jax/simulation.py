@@ -120,6 +120,7 @@ _SOLVER_OPTIONS = (
     "integrated_rho_scale",
     "shadow_rho_scale",
     "shadow_relaxation",
+    "anderson",
 )
 
 CONTROLLER_DEFAULTS: dict[str, dict[str, Any]] = {
@@ -132,6 +133,9 @@ CONTROLLER_DEFAULTS: dict[str, dict[str, Any]] = {
         "integrated_rho_scale": 0.3,  # the integrated MPC's own best at alpha 1.5 (p95 78 -> 25)
         "shadow_rho_scale": 0.5,  # shadow to 1e-8 Nm^2: p95 269 -> 116 iterations
         "shadow_relaxation": 1.8,
+        # Anderson memory 3 (also for the integrated MPC it is timed against):
+        # iterations p95 17.2 -> 14, max 79 -> 30 (docs/results.md, 2026-11-30)
+        "anderson": 3,
     },
     "stability": {
         "warm_shift": 0,  # hold the previous iterate: p50 10 -> 4, p95 16 -> 15 (launch/brake)
@@ -140,6 +144,9 @@ CONTROLLER_DEFAULTS: dict[str, dict[str, Any]] = {
         "integrated_rho_scale": 1.2,  # its own best at alpha 1.6
         "shadow_rho_scale": 1.0,  # shadow: p95 143 -> 84 iterations
         "shadow_relaxation": 1.8,
+        # off: p95 already 15 / 23; memory 3 gave 14 / 22 but its larger loop
+        # carry made XLA:CPU hand the step to its thread pool (r_time 1.16 -> 1.33)
+        "anderson": 0,
     },
 }
 """Per-example defaults of the solver options of :class:`SimConfig` (see its docstring)."""
@@ -151,6 +158,7 @@ PAPER_SOLVER_OPTIONS: dict[str, Any] = {
     "integrated_rho_scale": 1.0,
     "shadow_rho_scale": 1.0,
     "shadow_relaxation": 1.0,
+    "anderson": 0,
 }
 """eq.opt_ro's rho* unscaled and no over-relaxation: the paper's iteration
 (``config_for(..., **PAPER_SOLVER_OPTIONS)``); the warm start (which the paper
@@ -196,6 +204,10 @@ class SimConfig:
         used as the controller and in the r_time replay (one objective, so one
         float), tuned for it by the same sweep as ``rho_scale``.
         ``None``: the example's default.
+    anderson : Anderson acceleration memory (0 to 3; 0 is plain ADMM) of
+        Local Explicit *and* of the IntegratedADMM it is compared with
+        (``LocalExplicit.anderson``), like ``relaxation``. The shadow stays
+        plain. ``None``: the example's default.
     shadow : solve the integrated MPC in shadow (e_sub of eq.suboptimality).
     shadow_tol_primal, shadow_tol_dual, shadow_max_iter : tolerances and cap of
         the shadow IntegratedADMM (warm started from its own previous step);
@@ -223,6 +235,7 @@ class SimConfig:
     rho_scale: float | tuple[float, ...] | None = None
     relaxation: float | None = None
     integrated_rho_scale: float | None = None
+    anderson: int | None = None
     shadow: bool = True
     shadow_tol_primal: float = 1e-8
     shadow_tol_dual: float = 1e-8
@@ -263,6 +276,10 @@ class SimConfig:
         if isinstance(ws, bool) or ws not in (0, 1):
             raise ValueError(f"warm_shift: expected 0 (hold) or 1 (shift), got {ws!r}")
         object.__setattr__(self, "warm_shift", int(ws))
+        aa = self.anderson
+        if isinstance(aa, bool) or not isinstance(aa, (int, np.integer)) or not 0 <= aa <= 3:
+            raise ValueError(f"anderson: expected an integer memory in 0..3 (0 = off), got {aa!r}")
+        object.__setattr__(self, "anderson", int(aa))
         n_obj = len(self.objectives_all)
         scale = self.rho_scale
         try:
@@ -442,6 +459,7 @@ def local_explicit_solver(
         tol_dual=config.tol_dual,
         rho_scale=config.enabled_rho_scale,
         relaxation=config.relaxation,
+        anderson=config.anderson,
     )
 
 
@@ -456,6 +474,7 @@ def integrated_solver(
         tol_dual=config.tol_dual,
         rho_scale=config.integrated_rho_scale,
         relaxation=config.relaxation,
+        anderson=config.anderson,
     )
 
 

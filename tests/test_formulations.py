@@ -514,3 +514,73 @@ def test_small_cholesky_semidefinite():
     assert np.all(np.isfinite(L))
     assert np.allclose(np.triu(L, 1), 0.0)
     np.testing.assert_allclose(L @ L.transpose(0, 2, 1), A, atol=1e-10)
+
+
+# --------------------------------------------------------------- Anderson acceleration
+def test_anderson_step_solves_a_linear_fixed_point_like_gmres():
+    """Type-II Anderson with memory m >= n on x -> M x + c is GMRES in disguise
+    (Walker and Ni 2011): it reaches the fixed point after about n + 1 maps,
+    where the plain iteration (spectral radius 0.95) needs hundreds."""
+    from ampc_jax.formulations import _anderson_init, _anderson_step
+
+    rng = np.random.default_rng(0)
+    n = 3
+    Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    M = jnp.asarray(Q @ np.diag([0.95, -0.5, 0.3]) @ Q.T)
+    c = jnp.asarray(rng.normal(size=n))
+    x_star = np.linalg.solve(np.eye(n) - np.asarray(M), np.asarray(c))
+    a = _anderson_init(jnp.zeros(n), 3)
+    for _ in range(n + 2):
+        a = _anderson_step(a, M @ a.x + c)
+    np.testing.assert_allclose(a.x, x_star, atol=1e-8)
+    x = jnp.zeros(n)
+    for _ in range(n + 2):
+        x = M @ x + c
+    assert np.max(np.abs(x - x_star)) > 1e-2  # the plain iteration is far from it
+
+
+@pytest.mark.parametrize("anderson", [1, 3])
+@pytest.mark.parametrize("n_obj,shared", [(2, "all"), (3, "both")])
+def test_anderson_keeps_the_optimum(anderson, n_obj, shared):
+    problems = [random_problem(seed, n_obj, shared=shared) for seed in range(8)]
+    solver = LocalExplicit(problems[0].topology, relaxation=1.5, anderson=anderson, **TIGHT)
+    compare_batch(problems, solver)
+
+
+def test_anderson_saves_iterations():
+    problems = [random_problem(seed, 3, shared="both") for seed in range(10)]
+    T = problems[0].topology
+    datas = stack([p.data() for p in problems])
+    its = {}
+    for m in (0, 3):
+        s = LocalExplicit(T, max_iter=20000, tol_primal=1e-8, tol_dual=1e-8, anderson=m)
+        r = jax.jit(jax.vmap(s.solve))(datas)
+        assert np.all(np.asarray(r.status) == 0)
+        its[m] = np.asarray(r.iterations)
+    # measured: 14342 -> 4004 iterations in all; require at least a quarter less
+    assert its[3].sum() < 0.75 * its[0].sum(), its
+
+
+def test_anderson_fixed_runner_matches_while_runner_and_float32():
+    p = random_problem(3, 2, shared="all")
+    T, d = p.topology, p.data()
+    s = LocalExplicit(T, max_iter=7, tol_primal=0.0, tol_dual=0.0, anderson=2)
+    a = jax.jit(s.solve)(d)
+    b = jax.jit(lambda d: s.solve_fixed(d, 7))(d)
+    assert int(a.iterations) == int(b.iterations) == 7
+    np.testing.assert_allclose(a.u, b.u, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(a.state.Z, b.state.Z, rtol=1e-12, atol=1e-12)
+    # float32: converges to the float64 answer at float32 accuracy
+    s = LocalExplicit(T, max_iter=3000, tol_primal=1e-7, tol_dual=1e-7, anderson=3)
+    r32 = jax.jit(s.solve)(p.data(jnp.float32))
+    r64 = jax.jit(s.solve)(d)
+    assert r32.u.dtype == jnp.float32 and int(r32.status) in (0, 1)
+    assert bool(jnp.all(jnp.isfinite(r32.u)))
+    np.testing.assert_allclose(r32.u0, r64.u0, atol=2e-3)
+
+
+def test_bad_anderson_names_the_field():
+    T = random_problem(0, 2).topology
+    for bad in (-1, 4, 1.5, True, "3"):
+        with pytest.raises(ValueError, match="anderson"):
+            LocalExplicit(T, anderson=bad)

@@ -196,6 +196,9 @@ def test_walkthrough_notebook_executes():
         ({"shadow_relaxation": 2.5}, "shadow_relaxation"),
         ({"warm_shift": 2}, "warm_shift"),
         ({"warm_shift": True}, "warm_shift"),
+        ({"anderson": 4}, "anderson"),
+        ({"anderson": -1}, "anderson"),
+        ({"anderson": 2.0}, "anderson"),
     ],
 )
 def test_solver_options_are_validated(kw, field):
@@ -209,16 +212,18 @@ def test_solver_options_defaults_and_pass_through():
         c = config_for(name)
         assert c.rho_scale == tuple(d["rho_scale"]) and c.relaxation == d["relaxation"]
         assert c.integrated_rho_scale == d["integrated_rho_scale"]
-        assert c.warm_shift == d["warm_shift"]
+        assert c.warm_shift == d["warm_shift"] and c.anderson == d["anderson"]
         assert hash(c) == hash(config_for(name))  # still a static jit argument
         T = build_topology(c)[0]
         le = Simulator(c).controller()
         assert le.rho_scale == c.rho_scale and le.relaxation == c.relaxation
         ia = integrated_solver(c, T)
         assert ia.rho_scale == c.integrated_rho_scale and ia.relaxation == c.relaxation
+        assert le.anderson == ia.anderson == ia.inner.anderson == c.anderson
         assert (ia.tol_primal, ia.tol_dual) == (le.tol_primal, le.tol_dual)
         sh = Simulator(c).shadow_solver()
         assert sh.rho_scale == c.shadow_rho_scale and sh.relaxation == c.shadow_relaxation
+        assert sh.anderson == 0  # the shadow stays plain ADMM
         ctrl = Simulator(config_for(name, formulation="integrated")).controller()
         assert ctrl.rho_scale == c.integrated_rho_scale and ctrl.relaxation == c.relaxation
     # --disable keeps the enabled objectives' factors
