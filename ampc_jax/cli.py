@@ -162,6 +162,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
                     tol_dual=tol,
                     rho_scale=args.rho_scale,
                     relaxation=args.relaxation,
+                    anderson=args.anderson,
                 )
             except ValueError as e:
                 return _fail(str(e))
@@ -193,6 +194,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
                         tol_dual=tol,
                         rho_scale=args.rho_scale[0],
                         relaxation=args.relaxation,
+                        anderson=args.anderson,
                     )
                     _ = solver.inner  # validates the settings
                 except ValueError as e:
@@ -290,6 +292,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=1.0,
         help="ADMM over-relaxation alpha in (0, 2); 1 = the paper's iteration",
+    )
+    p.add_argument(
+        "--anderson",
+        type=int,
+        choices=(0, 1, 2, 3),
+        default=0,
+        help="Anderson acceleration memory of the ADMM iteration (0 = the paper's plain iteration)",
     )
     p.add_argument("--max-iter", type=_positive(int), default=1000)
     p.add_argument(

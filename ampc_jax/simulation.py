@@ -144,8 +144,9 @@ CONTROLLER_DEFAULTS: dict[str, dict[str, Any]] = {
         "integrated_rho_scale": 1.2,  # its own best at alpha 1.6
         "shadow_rho_scale": 1.0,  # shadow: p95 143 -> 84 iterations
         "shadow_relaxation": 1.8,
-        # off: p95 already 15 / 23; memory 3 gave 14 / 22 but its larger loop
-        # carry made XLA:CPU hand the step to its thread pool (r_time 1.16 -> 1.33)
+        # off: p95 already 15 / 23 (launch/brake / DLC). Memory 3 gave 14 / 22, but
+        # the step then ran on XLA:CPU's thread pool (seen with jax.profiler; the
+        # dense K_j^-1 here is over 512 bytes) and r_time went 1.16 -> 1.33
         "anderson": 0,
     },
 }

@@ -333,7 +333,7 @@ def cmd_table(args: argparse.Namespace) -> int:
         print("no metrics.json found", file=sys.stderr)
         return 1
     print(
-        "| run | objectives | tol | alpha / rho scale (LE; int.) | e_sub p95 / max (Nm) | "
+        "| run | objectives | tol | alpha / rho scale (LE; int.) / Anderson m | e_sub p95 / max (Nm) | "
         "iterations p50 / p95 / max | r_time median / p95 | t_LE / t_int median (us) | "
         "yaw rms whole / focus (rad/s) | rear abs slip max / p95 | x real time |"
     )
@@ -343,7 +343,7 @@ def cmd_table(args: argparse.Namespace) -> int:
         objs = "+".join(m["objectives"]) if active else "driver alone"
         solver = (
             f"{_g(m, 'relaxation', 'g')} / {m.get('rho_scale')}; "
-            f"{_g(m, 'integrated_rho_scale', 'g')}"
+            f"{_g(m, 'integrated_rho_scale', 'g')} / {m.get('anderson', 0)}"
             if active
             else "-"
         )

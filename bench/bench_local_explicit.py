@@ -72,9 +72,13 @@ TOL = 1e-6  # eps_r = eps_s on squared residual norms (Nm^2 scale)
 # seeds differ from the measured ones; prints the grid).
 # "tuned, eps 1e-3": the same at eps_r = eps_s = 1e-3 Nm^2, whose first-step
 # error (printed) stays below OSQP's at its eps = 1e-6: a like-for-like accuracy.
+# "+ Anderson 3": the same with Anderson acceleration of memory 3
+# (``LocalExplicit.anderson``); "paper + Anderson 3" keeps eq.opt_ro's rho*.
 CONFIGS = {
     "paper": {},
+    "paper + Anderson 3": {"anderson": 3},
     "tuned": {"rho_scale": (1.0, 0.1), "relaxation": 1.6},
+    "tuned + Anderson 3": {"rho_scale": (1.0, 0.1), "relaxation": 1.6, "anderson": 3},
     "tuned, eps 1e-3": {"rho_scale": (1.0, 0.1), "relaxation": 1.6, "tol": 1e-3},
 }
 
@@ -434,7 +438,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", choices=("latency", "throughput"), help="run one of the two parts")
     ap.add_argument("--horizons", default="10,20", help="comma-separated N_p values")
     ap.add_argument("--dtypes", default="float64,float32", help="throughput dtypes")
+    ap.add_argument(
+        "--configs",
+        default=None,
+        help="comma-separated names from CONFIGS for the latency part (default: all)",
+    )
+    ap.add_argument(
+        "--throughput-config",
+        default="tuned",
+        choices=list(CONFIGS),
+        help="the configuration of the throughput part",
+    )
     args = ap.parse_args(argv)
+    configs = list(CONFIGS) if args.configs is None else args.configs.split(",")
+    for name in configs:
+        if name not in CONFIGS:
+            ap.error(f"--configs: unknown configuration {name!r}; expected one of {list(CONFIGS)}")
     if args.tune:
         for horizon in (10, 20):
             tune(horizon)
@@ -454,7 +473,7 @@ def main(argv: list[str] | None = None) -> int:
     horizons = [int(h) for h in args.horizons.split(",")]
     dtypes = args.dtypes.split(",")
     for horizon in horizons if args.only != "throughput" else ():
-        for config in CONFIGS:
+        for config in configs:
             lat = latency(horizon, steps, config)
             results["latency"].append(lat)
             print(
@@ -480,12 +499,13 @@ def main(argv: list[str] | None = None) -> int:
                 args.chunk,
                 5 if args.quick else 20,
                 9,
+                config=args.throughput_config,
                 dtype=dtype,
                 vmap_chunk=args.vmap_chunk,
             )
             results["throughput"].append(thr)
             print(
-                f"N_p={horizon} {dtype}: OSQP Python loop {thr['osqp_loop_steps_per_s']:.0f} steps/s "
+                f"N_p={horizon} {dtype} [{args.throughput_config}]: OSQP Python loop {thr['osqp_loop_steps_per_s']:.0f} steps/s "
                 f"({thr['osqp_loop_steps_per_s_without_condense']:.0f} without condensing); "
                 f"best JAX batch / OSQP loop = {thr['ratio_best_jax_over_osqp_loop']:.1f}x "
                 f"({thr['ratio_best_jax_over_osqp_loop_without_condense']:.1f}x without condensing); "
@@ -495,6 +515,8 @@ def main(argv: list[str] | None = None) -> int:
     suffix = f"_{args.only}" if args.only else ""
     if args.horizons != "10,20" or args.dtypes != "float64,float32":
         suffix += "_" + args.horizons.replace(",", "-") + "_" + args.dtypes.replace(",", "-")
+    if args.throughput_config != "tuned" and args.only != "latency":
+        suffix += "_" + args.throughput_config.replace(" + ", "_").replace(" ", "_")
     path = Path(__file__).with_name(f"results_local_explicit{suffix}.json")
     path.write_text(json.dumps(results, indent=1, default=str))
     print(f"wrote {path}")

@@ -40,6 +40,10 @@ def test_solve_json_contract_and_rho_scale(capsys):
     # same optimum either way (rho and relaxation only change the path)
     for agent, u0 in base["u0"].items():
         np.testing.assert_allclose(scaled["u0"][agent], u0, atol=5e-2)
+    accelerated = run_json(capsys, "--anderson", "3")
+    assert accelerated["converged"] and accelerated["iterations"] < base["iterations"]
+    for agent, u0 in base["u0"].items():
+        np.testing.assert_allclose(accelerated["u0"][agent], u0, atol=5e-2)
 
 
 def exit_code(args):
@@ -56,6 +60,7 @@ def exit_code(args):
         (["--rho-scale", "1,2,3"], "rho_scale"),
         (["--rho-scale", "-1"], "positive"),
         (["--relaxation", "2.5"], "relaxation"),
+        (["--anderson", "4"], "anderson"),
     ],
 )
 def test_solve_rejects_bad_solver_options(capsys, args, message):
