@@ -38,3 +38,38 @@ def test_opt_out_keeps_xla_flags_untouched():
     assert (
         _flags(AMPC_KEEP_XLA_FLAGS="1", XLA_FLAGS="--xla_dump_to=/tmp/y") == "--xla_dump_to=/tmp/y"
     )
+
+
+def test_small_while_loop_threshold_flag():
+    """The raised threshold is appended, a user's own backend options are kept,
+    and it takes effect: a loop over a 32 kB matrix becomes one kernel
+    (an ``xla_cpu_small_call``) only with it."""
+    from importlib.metadata import version
+
+    import ampc_jax
+
+    if not any(version("jaxlib").startswith(p) for p in ampc_jax.XLA_PERFORMANCE_FLAGS):
+        pytest.skip("the flag is only set for the jaxlib versions it was measured with")
+    key = "--xla_backend_extra_options"
+    assert f"{key}=xla_cpu_small_while_loop_byte_threshold=1000000" in _flags()
+    own = f"{key}=xla_cpu_small_while_loop_byte_threshold=0"
+    kept = _flags(XLA_FLAGS=own)
+    assert own in kept and kept.count(key) == 1
+    probe = (
+        "import os, ampc_jax, jax, jax.numpy as jnp\n"
+        "f = lambda M, v: jax.lax.fori_loop(0, 10, lambda i, x: jnp.tanh(M @ x), v)\n"
+        "txt = jax.jit(f).lower(jnp.ones((64, 64)), jnp.ones(64)).compile().as_text()\n"
+        "print('xla_cpu_small_call' in txt)\n"
+    )
+
+    def hoisted(**env_extra: str) -> str:
+        env = {
+            k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "AMPC_KEEP_XLA_FLAGS")
+        }
+        env.update(env_extra)
+        r = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+        return r.stdout.strip()
+
+    assert hoisted() == "True"
+    assert hoisted(AMPC_KEEP_XLA_FLAGS="1") == "False"
