@@ -63,9 +63,7 @@ def test_small_while_loop_threshold_flag():
     )
 
     def hoisted(**env_extra: str) -> str:
-        env = {
-            k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "AMPC_KEEP_XLA_FLAGS")
-        }
+        env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "AMPC_KEEP_XLA_FLAGS")}
         env.update(env_extra)
         r = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True)
         assert r.returncode == 0, r.stderr
