@@ -20,8 +20,8 @@ is set; flags already present are left as they are):
   (1 kB by default) into one kernel instead of running its body kernel by
   kernel. That covers the solvers' iteration loops up to N_p = 20 (and
   batches of 32 at N_p = 10 and 20): the ADMM iteration of the cruise example
-  went from 0.30 to 0.16 us, a full step at N_p = 10 from 131 to 115 us, the
-  closed-loop DLC from 478x to 897x real time (README, "Speed"). Skipped when
+  went from 0.30 to 0.16 us, a full step at N_p = 10 from 131 to 114 us, the
+  closed-loop DLC from 467x to 908x real time (README, "Known issues"). Skipped when
   ``XLA_FLAGS`` already sets ``--xla_backend_extra_options``.
 
 The flags only take effect if JAX's CPU backend has not started yet, so import
