@@ -1,0 +1,171 @@
+"""Where a control step's time goes: JAX's per-call overhead against the solve.
+
+For each closed-loop scenario this runs the closed loop once (to log every
+step's ProblemData and Local Explicit warm start, as ``replay_timing`` does),
+then times, interleaved on the logged steps (median per step, then the median
+over the steps), for Local Explicit and for IntegratedADMM (the r_time peer,
+warm started from its own previous solution):
+
+* ``full``: ``jax.jit(solver.solve)``, the call ``replay_timing`` times (the
+  whole SolveResult comes back: 13 to 15 arrays);
+* ``no-op``: a jitted function with the same arguments and the same output
+  structure that does no solving (sums its inputs into the outputs): JAX's
+  cost of the call itself (argument handling, output buffers, dispatch);
+* ``packed``: the call a deployed controller needs, with the warm state packed
+  into one vector (``jax.flatten_util.ravel_pytree``) in and out and only u0,
+  the next warm state and (status, iterations) returned.
+
+Usage: ``taskset -c 1 python bench/bench_call_overhead.py [SCENARIO ...]``
+(default: the three closed-loop scenarios).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+import ampc_jax  # noqa: F401  (its XLA flags; JAX starts its backend later)
+from ampc_jax.formulations import shift_state
+from ampc_jax.integrated import merged_topology
+from ampc_jax.simulation import (
+    _zero_state,
+    build_topology,
+    config_for,
+    integrated_solver,
+    local_explicit_solver,
+    simulate,
+)
+
+jax.config.update("jax_enable_x64", True)
+
+SCENARIOS = ("cruise_lane_change", "stability_launch_brake", "stability_dlc")
+REPEATS = 25
+
+
+def _noop_like(solver: Any, d: Any, w: Any) -> Any:
+    shape = jax.eval_shape(lambda: solver.solve(d, None, w))
+
+    def f(d: Any, rho: Any, w: Any) -> Any:
+        s = sum(jnp.sum(x).astype(jnp.float64) for x in jax.tree.leaves((d, w)) if x.size)
+        return jax.tree.map(lambda t: jnp.full(t.shape, s).astype(t.dtype), shape)
+
+    return f
+
+
+def _packed(solver: Any, template: Any, shift: int) -> Any:
+    _, unravel = ravel_pytree(template)
+
+    def f(d: Any, p: Any) -> Any:
+        r = solver.solve(d, None, unravel(p))
+        nxt = ravel_pytree(shift_state(r.state, shift))[0]
+        return r.u[0], nxt, jnp.stack([r.status, r.iterations])
+
+    return f
+
+
+def run(name: str) -> dict[str, float]:
+    cfg = config_for(name)
+    res = simulate(name, cfg)
+    log = res.log
+    T = build_topology(cfg)[0]
+    le = local_explicit_solver(cfg, T)
+    ia = integrated_solver(cfg, T, max_iter=max(cfg.max_iter, 2000))
+    K = len(log.t)
+    ds = [jax.device_put(jax.tree.map(lambda x, k=k: x[k], log.data)) for k in range(K)]
+    ws = [jax.device_put(jax.tree.map(lambda x, k=k: x[k], log.warm)) for k in range(K)]
+    cold = _zero_state(merged_topology(T), jnp.float64)
+    # the peer's warm chain, as in replay_timing
+    full_i = jax.jit(ia.solve).lower(ds[0], None, cold).compile()
+    wis = [cold]
+    for k in range(K - 1):
+        r = full_i(ds[k], None, wis[-1])
+        ok = int(r.status) in (0, 1) and bool(np.all(np.isfinite(np.asarray(r.u))))
+        wis.append(shift_state(r.state, cfg.warm_shift) if ok else cold)
+    fns = {
+        ("LE", "full"): (jax.jit(le.solve).lower(ds[0], None, ws[0]).compile(), "le3"),
+        ("int", "full"): (full_i, "ia3"),
+        ("LE", "no-op"): (
+            jax.jit(_noop_like(le, ds[0], ws[0])).lower(ds[0], None, ws[0]).compile(),
+            "le3",
+        ),
+        ("int", "no-op"): (
+            jax.jit(_noop_like(ia, ds[0], cold)).lower(ds[0], None, cold).compile(),
+            "ia3",
+        ),
+        ("LE", "packed"): (
+            jax.jit(_packed(le, ws[0], cfg.warm_shift))
+            .lower(ds[0], ravel_pytree(ws[0])[0])
+            .compile(),
+            "le2",
+        ),
+        ("int", "packed"): (
+            jax.jit(_packed(ia, cold, cfg.warm_shift))
+            .lower(ds[0], ravel_pytree(cold)[0])
+            .compile(),
+            "ia2",
+        ),
+    }
+    pl = [ravel_pytree(w)[0] for w in ws]
+    pi = [ravel_pytree(w)[0] for w in wis]
+
+    def args(kind: str, k: int) -> tuple:
+        return {
+            "le3": (ds[k], None, ws[k]),
+            "ia3": (ds[k], None, wis[k]),
+            "le2": (ds[k], pl[k]),
+            "ia2": (ds[k], pi[k]),
+        }[kind]
+
+    per: dict[tuple, list] = {key: [] for key in fns}
+    for k in range(0, K, 2):
+        acc: dict[tuple, list] = {key: [] for key in fns}
+        for f, kind in fns.values():
+            jax.block_until_ready(f(*args(kind, k)))
+        for _ in range(REPEATS):
+            for key, (f, kind) in fns.items():
+                a = args(kind, k)
+                t0 = time.perf_counter()
+                jax.block_until_ready(f(*a))
+                acc[key].append(time.perf_counter() - t0)
+        for key in fns:
+            per[key].append(np.median(acc[key]) * 1e6)
+    t = {key: np.asarray(v) for key, v in per.items()}
+    out = {f"{s} {kind}": float(np.median(t[(s, kind)])) for s, kind in fns}
+    for kind in ("full", "packed"):
+        out[f"r_time {kind}"] = float(np.median(t[("LE", kind)] / t[("int", kind)]))
+    out["r_time full minus no-op"] = float(
+        np.median(
+            (t[("LE", "full")] - t[("LE", "no-op")]) / (t[("int", "full")] - t[("int", "no-op")])
+        )
+    )
+    return out
+
+
+def main(argv: list[str]) -> int:
+    names = argv or list(SCENARIOS)
+    print(
+        f"jax {jax.__version__}; medians over every other logged step, {REPEATS} interleaved calls each"
+    )
+    print(
+        "| scenario | LE full / no-op / packed (us) | int. full / no-op / packed (us) | r_time full | packed | full minus no-op |"
+    )
+    print("| --- | --- | --- | --- | --- | --- |")
+    for name in names:
+        o = run(name)
+        print(
+            f"| {name} | {o['LE full']:.1f} / {o['LE no-op']:.1f} / {o['LE packed']:.1f} | "
+            f"{o['int full']:.1f} / {o['int no-op']:.1f} / {o['int packed']:.1f} | "
+            f"{o['r_time full']:.3f} | {o['r_time packed']:.3f} | {o['r_time full minus no-op']:.3f} |",
+            flush=True,
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
