@@ -45,7 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .formulations import ADMMState, LocalExplicit, shift_state
+from .formulations import _ANDERSON_MAX, ADMMState, LocalExplicit, shift_state
 from .integrated import IntegratedADMM, merged_topology
 from .manoeuvres import (
     SCENARIOS,
@@ -278,8 +278,14 @@ class SimConfig:
             raise ValueError(f"warm_shift: expected 0 (hold) or 1 (shift), got {ws!r}")
         object.__setattr__(self, "warm_shift", int(ws))
         aa = self.anderson
-        if isinstance(aa, bool) or not isinstance(aa, (int, np.integer)) or not 0 <= aa <= 3:
-            raise ValueError(f"anderson: expected an integer memory in 0..3 (0 = off), got {aa!r}")
+        if (
+            isinstance(aa, bool)
+            or not isinstance(aa, (int, np.integer))
+            or not 0 <= aa <= _ANDERSON_MAX
+        ):
+            raise ValueError(
+                f"anderson: expected an integer memory in 0..{_ANDERSON_MAX} (0 = off), got {aa!r}"
+            )
         object.__setattr__(self, "anderson", int(aa))
         n_obj = len(self.objectives_all)
         scale = self.rho_scale

@@ -11,12 +11,17 @@ pytestmark = pytest.mark.timeout(120)
 SCRIPT = "import os, ampc_jax; print(os.environ.get('XLA_FLAGS', ''))"
 
 
-def _flags(**env_extra: str) -> str:
+def _run(script: str, **env_extra: str) -> str:
+    """stdout of ``script`` in a fresh interpreter without our XLA variables (plus ``env_extra``)."""
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "AMPC_KEEP_XLA_FLAGS")}
     env.update(env_extra)
-    r = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     return r.stdout.strip()
+
+
+def _flags(**env_extra: str) -> str:
+    return _run(SCRIPT, **env_extra)
 
 
 def test_flags_appended_once_and_user_flags_kept():
@@ -42,7 +47,7 @@ def test_opt_out_keeps_xla_flags_untouched():
 
 def test_small_while_loop_threshold_flag():
     """The raised threshold is appended, a user's own backend options are kept,
-    and it takes effect: a loop over a 32 kB matrix becomes one kernel
+    and it takes effect: a loop over a 16 kB matrix becomes one kernel
     (an ``xla_cpu_small_call``) only with it."""
     from importlib.metadata import version
 
@@ -61,13 +66,5 @@ def test_small_while_loop_threshold_flag():
         "txt = jax.jit(f).lower(jnp.ones((64, 64)), jnp.ones(64)).compile().as_text()\n"
         "print('xla_cpu_small_call' in txt)\n"
     )
-
-    def hoisted(**env_extra: str) -> str:
-        env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "AMPC_KEEP_XLA_FLAGS")}
-        env.update(env_extra)
-        r = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True)
-        assert r.returncode == 0, r.stderr
-        return r.stdout.strip()
-
-    assert hoisted() == "True"
-    assert hoisted(AMPC_KEEP_XLA_FLAGS="1") == "False"
+    assert _run(probe) == "True"
+    assert _run(probe, AMPC_KEEP_XLA_FLAGS="1") == "False"
