@@ -75,6 +75,7 @@ __all__ = [
     "LocalSetup",
     "local_costs",
     "optimal_rho",
+    "shift_horizon",
     "shift_state",
 ]
 
@@ -747,6 +748,14 @@ def _anderson_step(a: _Anderson, g: Any) -> _Anderson:
     )
 
 
+def shift_horizon(x: Any, steps: int = 1) -> Any:
+    """x (leading axis: the horizon) moved one step along it, the last step
+    repeated (``steps=1``), or unchanged (``steps=0``): the MPC warm start."""
+    if steps not in (0, 1):
+        raise ValueError(f"steps: expected 0 (hold) or 1 (shift), got {steps!r}")
+    return jnp.concatenate([x[1:], x[-1:]], axis=0) if steps else x
+
+
 def shift_state(state: ADMMState, steps: int = 1) -> ADMMState:
     """Warm start: the previous step's iterate shifted along the horizon.
 
@@ -760,7 +769,7 @@ def shift_state(state: ADMMState, steps: int = 1) -> ADMMState:
         raise ValueError(f"steps: expected 0 (hold) or 1 (shift), got {steps!r}")
 
     def sh(x: Any) -> Any:
-        return jnp.concatenate([x[1:], x[-1:]], axis=0) if steps else x
+        return shift_horizon(x, steps)
 
     inf = jnp.full_like(state.primal, jnp.inf)
     return ADMMState(
@@ -901,9 +910,6 @@ class LocalExplicit:
             )
         object.__setattr__(self, "anderson", int(self.anderson))
         self.topology.check_local_explicit()
-
-    def _rows(self, j: int) -> np.ndarray:
-        return np.asarray(self.topology.group_rows(j), dtype=np.int32)
 
     def _own(self, j: int) -> np.ndarray:
         """Positions of objective j's own rows (``Topology.group_rows(j)`` order)
@@ -1187,35 +1193,25 @@ class LocalExplicit:
             finite = jnp.all(jnp.isfinite(st.primal) | (st.iteration == 0))
             return (st.iteration < self.max_iter) & ~self.converged(st) & finite
 
-        if not self.anderson:
-            flat = jax.lax.while_loop(
-                cond, lambda st: self._step_flat(setup, st), self._flat(state)
-            )
-            return self._unflat(flat)
-        st0 = self._flat(state)
-        carry = (st0, _anderson_init(self._point(st0), self.anderson))
-        flat, _ = jax.lax.while_loop(
-            lambda c: cond(c[0]), lambda c: self._accelerated(setup, c), carry
-        )
-        return self._unflat(flat)
+        carry, body, flat_of = self._loop(setup, state)
+        out = jax.lax.while_loop(lambda c: cond(flat_of(c)), body, carry)
+        return self._unflat(flat_of(out))
 
     def run_fixed(self, setup: LocalSetup, state: ADMMState, iterations: int) -> ADMMState:
         """Exactly ``iterations`` iterations under ``lax.scan`` (differentiable)."""
+        carry, body, flat_of = self._loop(setup, state)
+        out, _ = jax.lax.scan(lambda c, _: (body(c), None), carry, None, length=iterations)
+        return self._unflat(flat_of(out))
+
+    def _loop(self, setup: LocalSetup, state: ADMMState) -> tuple[Any, Any, Any]:
+        """Both runners' loop: its initial carry, one iteration, and the iterate
+        in the carry (the carry is the iterate itself, or with ``anderson`` the
+        iterate and the acceleration's history)."""
         st0 = self._flat(state)
         if not self.anderson:
-
-            def body(st: _Flat, _: Any) -> tuple[_Flat, None]:
-                return self._step_flat(setup, st), None
-
-            flat, _ = jax.lax.scan(body, st0, None, length=iterations)
-            return self._unflat(flat)
-
-        def body_aa(c: tuple, _: Any) -> tuple[tuple, None]:
-            return self._accelerated(setup, c), None
-
+            return st0, lambda st: self._step_flat(setup, st), lambda st: st
         carry = (st0, _anderson_init(self._point(st0), self.anderson))
-        (flat, _), _ = jax.lax.scan(body_aa, carry, None, length=iterations)
-        return self._unflat(flat)
+        return carry, lambda c: self._accelerated(setup, c), lambda c: c[0]
 
     # -- Anderson acceleration (``anderson`` > 0) ------------------------------------
     @staticmethod

@@ -66,7 +66,7 @@ def run_scenario(name: str, tols: list[float], repeats: int) -> list[dict[str, A
     import jax.numpy as jnp
     import jaxopt
 
-    from ampc_jax.formulations import shift_state
+    from ampc_jax.formulations import shift_horizon, shift_state
     from ampc_jax.integrated import condensed_qp, merged_topology
     from ampc_jax.simulation import (
         _input_columns,
@@ -121,13 +121,10 @@ def run_scenario(name: str, tols: list[float], repeats: int) -> list[dict[str, A
             )
 
     def shift_params(params: Any) -> Any:
-        """The MPC warm start of the other two solvers: one step along the horizon."""
-
-        def sh(x: Any) -> Any:
-            x = x.reshape(T.horizon, -1)
-            return jnp.concatenate([x[1:], x[-1:]]).reshape(-1)
-
-        return jax.tree.map(sh, params) if shift else params
+        """The MPC warm start of the other two solvers (jaxopt keeps flat vectors)."""
+        return jax.tree.map(
+            lambda x: shift_horizon(x.reshape(T.horizon, -1), shift).reshape(-1), params
+        )
 
     rows: dict[str, dict[str, list]] = {}
 

@@ -180,7 +180,7 @@ def equal_weight_step(solver, setup, state):
     count = jnp.zeros_like(state.Z)
     Ain, b = [], []
     for j in range(T.n_objectives):
-        rows = solver._rows(j)
+        rows = list(T.group_rows(j))
         Aj, bj = solver.objective_constraints(setup, j)
         Ain.append(Aj)
         b.append(bj)
@@ -189,7 +189,7 @@ def equal_weight_step(solver, setup, state):
         count = count.at[:, rows].add(1.0)
     Z = jnp.maximum(num / count, 0.0)
     gam = tuple(
-        state.gamma[j] + setup.rho[j] * (out.U[j] @ Ain[j].T - b[j] + Z[:, solver._rows(j)])
+        state.gamma[j] + setup.rho[j] * (out.U[j] @ Ain[j].T - b[j] + Z[:, list(T.group_rows(j))])
         for j in range(T.n_objectives)
     )
     return out._replace(Z=Z, gamma=gam)
