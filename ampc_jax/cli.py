@@ -78,9 +78,7 @@ def _scales(text: str) -> tuple[float, ...]:
 
 def _warm_state(path: str, solver: Any, dt: Any) -> Any:
     """Read a previous ``--json`` output's ``warm_state`` and shift it one step."""
-    import jax.numpy as jnp
-
-    from .formulations import ADMMState, shift_state
+    from .formulations import shift_state
 
     try:
         d = json.loads(Path(path).read_text())
@@ -92,31 +90,12 @@ def _warm_state(path: str, solver: Any, dt: Any) -> Any:
             f"--warm-start {path}: no 'warm_state' object; pass the --json output of a "
             f"previous 'ampc solve --formulation local_explicit'"
         )
-    T = solver.topology
     try:
-        U = tuple(jnp.asarray(ws["U"][j], dt).reshape(T.horizon, -1) for j in range(T.n_objectives))
-        gamma = tuple(
-            jnp.asarray(ws["gamma"][j], dt).reshape(T.horizon, -1) for j in range(T.n_objectives)
-        )
-        Z = jnp.asarray(ws["Z"], dt).reshape(T.horizon, T.n_c)
-    except (KeyError, IndexError, TypeError, ValueError) as exc:
+        state = solver.state_of(ws["U"], ws["Z"], ws["gamma"], dt)
+    except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(
             f"--warm-start {path}: warm_state does not match this problem ({exc})"
         ) from exc
-    for j in range(T.n_objectives):
-        if U[j].shape != (T.horizon, len(T.group_columns(j))) or gamma[j].shape != (
-            T.horizon,
-            len(T.group_rows(j)),
-        ):
-            raise ValueError(f"--warm-start {path}: warm_state does not match this problem's sizes")
-    state = ADMMState(
-        U=U,
-        Z=Z,
-        gamma=gamma,
-        iteration=jnp.zeros((), jnp.int32),
-        primal=jnp.zeros(T.n_objectives, dt),
-        dual=jnp.zeros(T.n_objectives, dt),
-    )
     return shift_state(state)
 
 
@@ -233,9 +212,9 @@ def cmd_solve(args: argparse.Namespace) -> int:
     if args.formulation == "local_explicit":
         st = res.state
         out["warm_state"] = {
-            "U": [np.asarray(x).tolist() for x in st.U],
+            "U": [np.asarray(x).tolist() for x in solver.local_inputs(st)],
             "Z": np.asarray(st.Z).tolist(),
-            "gamma": [np.asarray(x).tolist() for x in st.gamma],
+            "gamma": [np.asarray(x).tolist() for x in solver.multipliers(st)],
         }
     if not np.all(np.isfinite(u)):
         out["u0"] = {k: None for k in per_agent}

@@ -73,6 +73,7 @@ __all__ = [
     "ADMMState",
     "LocalExplicit",
     "LocalSetup",
+    "cold_state",
     "local_costs",
     "optimal_rho",
     "shift_horizon",
@@ -195,30 +196,32 @@ def _layout(topology: Topology) -> _Layout:
 _COMPACT_ROWS = 1.0
 
 
-class _Flat(NamedTuple):
-    """The iterate in the padded stacked layout (the loop carry)."""
-
-    Z: Any  # (N_p, n_c)
-    gamma: Any  # (J, N_p, n_c), zero on rows objective j does not carry; compact: (J, N_p, C)
-    U: Any  # (J, n)
-    iteration: Any
-    primal: Any  # (J,)
-    dual: Any  # (J,)
-
-
 class ADMMState(NamedTuple):
-    """Iterate of Local Explicit.
+    """Iterate of Local Explicit, in the solver's padded, objective-stacked layout.
 
-    U : tuple over objectives of (N_p, n_uj) local inputs U_j.
+    The loop carries this state as it is, so a warm start goes in and the
+    final iterate comes out without any regrouping (a control step costs no
+    more array arguments with more objectives). J objectives, each padded to
+    U = max_j n_u,j input columns and R constraint rows:
+
+    U : (J, N_p, U) local inputs U_j; column a of objective j is input
+        ``Topology.group_columns(j)[a]``, padded columns are ignored.
     Z : (N_p, n_c) global slack.
-    gamma : tuple over objectives of (N_p, n_cj) multipliers gamma_j.
+    gamma : (J, N_p, R) multipliers gamma_j, zero on the rows objective j does
+        not carry and on padding. R is n_c (rows in the problem's numbering)
+        or, when no objective carries every row, max_j n_c,j (objective j's own
+        rows first, in ``Topology.group_rows(j)`` order).
     iteration : () int32.
-    primal, dual : (n_obj,) ||r_j||^2 and ||s_j||^2 of the last iteration.
+    primal, dual : (J,) ||r_j||^2 and ||s_j||^2 of the last iteration.
+
+    Per-objective views: :meth:`LocalExplicit.local_inputs`,
+    :meth:`LocalExplicit.multipliers`; from per-objective arrays:
+    :meth:`LocalExplicit.state_of`; cold start: :func:`cold_state`.
     """
 
-    U: tuple
+    U: Any
     Z: Any
-    gamma: tuple
+    gamma: Any
     iteration: Any
     primal: Any
     dual: Any
@@ -748,12 +751,16 @@ def _anderson_step(a: _Anderson, g: Any) -> _Anderson:
     )
 
 
-def shift_horizon(x: Any, steps: int = 1) -> Any:
-    """x (leading axis: the horizon) moved one step along it, the last step
-    repeated (``steps=1``), or unchanged (``steps=0``): the MPC warm start."""
+def shift_horizon(x: Any, steps: int = 1, axis: int = 0) -> Any:
+    """x moved one step along its horizon axis ``axis``, the last step repeated
+    (``steps=1``), or unchanged (``steps=0``): the MPC warm start."""
     if steps not in (0, 1):
         raise ValueError(f"steps: expected 0 (hold) or 1 (shift), got {steps!r}")
-    return jnp.concatenate([x[1:], x[-1:]], axis=0) if steps else x
+    if not steps:
+        return x
+    n = x.shape[axis]
+    head = jax.lax.slice_in_dim(x, 1, n, axis=axis)
+    return jnp.concatenate([head, jax.lax.slice_in_dim(x, n - 1, n, axis=axis)], axis=axis)
 
 
 def shift_state(state: ADMMState, steps: int = 1) -> ADMMState:
@@ -767,18 +774,29 @@ def shift_state(state: ADMMState, steps: int = 1) -> ADMMState:
     """
     if steps not in (0, 1):
         raise ValueError(f"steps: expected 0 (hold) or 1 (shift), got {steps!r}")
-
-    def sh(x: Any) -> Any:
-        return shift_horizon(x, steps)
-
     inf = jnp.full_like(state.primal, jnp.inf)
     return ADMMState(
-        U=tuple(sh(u) for u in state.U),
-        Z=sh(state.Z),
-        gamma=tuple(sh(g) for g in state.gamma),
+        U=shift_horizon(state.U, steps, axis=1),
+        Z=shift_horizon(state.Z, steps),
+        gamma=shift_horizon(state.gamma, steps, axis=1),
         iteration=jnp.zeros((), jnp.int32),
         primal=inf,
         dual=inf,
+    )
+
+
+def cold_state(topology: Topology, dtype: Any = jnp.float64) -> ADMMState:
+    """The cold start of alg:1 for ``topology``: zeros, residuals inf."""
+    lay = _layout(topology)
+    J, U = lay.cols.shape
+    N = topology.horizon
+    return ADMMState(
+        U=jnp.zeros((J, N, U), dtype),
+        Z=jnp.zeros((N, topology.n_c), dtype),
+        gamma=jnp.zeros((J, N, lay.rows.shape[1]), dtype),
+        iteration=jnp.zeros((), jnp.int32),
+        primal=jnp.full((J,), jnp.inf, dtype),
+        dual=jnp.full((J,), jnp.inf, dtype),
     )
 
 
@@ -1070,58 +1088,72 @@ class LocalExplicit:
 
     def init(self, setup: LocalSetup, warm: ADMMState | None = None) -> ADMMState:
         """Cold start (zeros, as alg:1) or a warm start state (see :func:`shift_state`)."""
-        if warm is not None:
-            return warm
+        cold = cold_state(self.topology, setup.rho.dtype)
+        if warm is None:
+            return cold
+        if not isinstance(warm, ADMMState):
+            raise TypeError(
+                f"warm: expected an ADMMState (a previous result's .state, shifted), "
+                f"got {type(warm).__name__}"
+            )
+        for name, want, got in zip(ADMMState._fields, cold, warm, strict=True):
+            if jnp.shape(got) != want.shape:
+                raise ValueError(
+                    f"warm.{name}: expected shape {want.shape} for this topology "
+                    f"(ADMMState is in the solver's padded layout; build one from "
+                    f"per-objective arrays with LocalExplicit.state_of), got {jnp.shape(got)}"
+                )
+        return warm
+
+    # -- per-objective views of the padded state ------------------------------------
+    def local_inputs(self, state: ADMMState) -> tuple:
+        """U_j, (N_p, n_u,j) per objective, columns in ``Topology.group_columns(j)`` order."""
+        lay = _layout(self.topology)
+        return tuple(state.U[..., j, :, :u] for j, u in enumerate(lay.u_sizes))
+
+    def multipliers(self, state: ADMMState) -> tuple:
+        """gamma_j, (N_p, n_c,j) per objective, rows in ``Topology.group_rows(j)`` order."""
+        J = self.topology.n_objectives
+        return tuple(state.gamma[..., j, :, :][..., self._own(j)] for j in range(J))
+
+    def state_of(self, U: Any, Z: Any, gamma: Any, dtype: Any = None) -> ADMMState:
+        """An :class:`ADMMState` from per-objective arrays (iteration 0, residuals inf).
+
+        U : one (N_p, n_u,j) array per objective; Z : (N_p, n_c);
+        gamma : one (N_p, n_c,j) array per objective (``Topology.group_rows(j)`` order).
+        """
         T = self.topology
         lay = _layout(T)
-        dt = setup.rho.dtype
-        inf = jnp.full((T.n_objectives,), jnp.inf, dt)
-        return ADMMState(
-            U=tuple(jnp.zeros((T.horizon, u), dt) for u in lay.u_sizes),
-            Z=jnp.zeros((T.horizon, T.n_c), dt),
-            gamma=tuple(jnp.zeros((T.horizon, c), dt) for c in lay.c_sizes),
-            iteration=jnp.zeros((), jnp.int32),
-            primal=inf,
-            dual=inf,
-        )
+        J, N = T.n_objectives, T.horizon
+        dt = jnp.result_type(float) if dtype is None else dtype
+        cold = cold_state(T, dt)
+        if len(U) != J or len(gamma) != J:
+            raise ValueError(
+                f"U, gamma: expected one array per objective ({J}), got {len(U)} and {len(gamma)}"
+            )
+        Up, gp = cold.U, cold.gamma
+        for j in range(J):
+            uj = jnp.asarray(U[j], dt)
+            gj = jnp.asarray(gamma[j], dt)
+            if uj.shape != (N, lay.u_sizes[j]):
+                raise ValueError(
+                    f"U[{j}]: expected shape {(N, lay.u_sizes[j])} (objective "
+                    f"{T.objective_names[j]!r}), got {uj.shape}"
+                )
+            if gj.shape != (N, lay.c_sizes[j]):
+                raise ValueError(
+                    f"gamma[{j}]: expected shape {(N, lay.c_sizes[j])} (objective "
+                    f"{T.objective_names[j]!r}), got {gj.shape}"
+                )
+            Up = Up.at[j, :, : lay.u_sizes[j]].set(uj)
+            gp = gp.at[j].set(gp[j].at[:, self._own(j)].set(gj))
+        Zp = jnp.asarray(Z, dt)
+        if Zp.shape != (N, T.n_c):
+            raise ValueError(f"Z: expected shape {(N, T.n_c)}, got {Zp.shape}")
+        return cold._replace(U=Up, Z=Zp, gamma=gp)
 
     # -- one iteration --------------------------------------------------------------
-    def _flat(self, state: ADMMState) -> _Flat:
-        T = self.topology
-        lay = _layout(T)
-        J, U = lay.cols.shape
-        Up = jnp.stack([jnp.pad(u, ((0, 0), (0, U - u.shape[1]))) for u in state.U])
-        R = lay.rows.shape[1]
-        gp = jnp.stack(
-            [
-                jnp.zeros((T.horizon, R), g.dtype).at[:, self._own(j)].set(g)
-                for j, g in enumerate(state.gamma)
-            ]
-        )
-        return _Flat(
-            Z=state.Z,
-            gamma=gp,
-            U=Up.reshape(J, -1),
-            iteration=state.iteration,
-            primal=state.primal,
-            dual=state.dual,
-        )
-
-    def _unflat(self, flat: _Flat) -> ADMMState:
-        T = self.topology
-        lay = _layout(T)
-        J, U = lay.cols.shape
-        U3 = flat.U.reshape(J, T.horizon, U)
-        return ADMMState(
-            U=tuple(U3[j, :, :u] for j, u in enumerate(lay.u_sizes)),
-            Z=flat.Z,
-            gamma=tuple(flat.gamma[j][:, self._own(j)] for j in range(T.n_objectives)),
-            iteration=flat.iteration,
-            primal=flat.primal,
-            dual=flat.dual,
-        )
-
-    def _step_flat(self, setup: LocalSetup, st: _Flat) -> _Flat:
+    def _step(self, setup: LocalSetup, st: ADMMState) -> ADMMState:
         T = self.topology
         lay = _layout(T)
         J, U = lay.cols.shape
@@ -1175,11 +1207,11 @@ class LocalExplicit:
             dz = rho * dz  # s_j = rho_j (Z_j - Z_j_prev), eq.Convergence
         primal = jnp.sum(r * r, axis=(1, 2))
         dual = jnp.sum(dz * dz, axis=(1, 2))
-        return _Flat(Z, gamma, Uf, st.iteration + 1, primal, dual)
+        return ADMMState(Uf.reshape(J, N, U), Z, gamma, st.iteration + 1, primal, dual)
 
     def step(self, setup: LocalSetup, state: ADMMState) -> ADMMState:
         """One ADMM iteration: local, global and dual updates (alg:1 steps 5-9)."""
-        return self._unflat(self._step_flat(setup, self._flat(state)))
+        return self._step(setup, state)
 
     def converged(self, state: ADMMState) -> Any:
         """eq.Convergence for every objective (see ``dual_residual``)."""
@@ -1189,45 +1221,43 @@ class LocalExplicit:
     def run(self, setup: LocalSetup, state: ADMMState) -> ADMMState:
         """``lax.while_loop`` until eq.Convergence or ``max_iter`` (deployment)."""
 
-        def cond(st: _Flat) -> Any:
+        def cond(st: ADMMState) -> Any:
             finite = jnp.all(jnp.isfinite(st.primal) | (st.iteration == 0))
             return (st.iteration < self.max_iter) & ~self.converged(st) & finite
 
-        carry, body, flat_of = self._loop(setup, state)
-        out = jax.lax.while_loop(lambda c: cond(flat_of(c)), body, carry)
-        return self._unflat(flat_of(out))
+        carry, body, iterate_of = self._loop(setup, state)
+        return iterate_of(jax.lax.while_loop(lambda c: cond(iterate_of(c)), body, carry))
 
     def run_fixed(self, setup: LocalSetup, state: ADMMState, iterations: int) -> ADMMState:
         """Exactly ``iterations`` iterations under ``lax.scan`` (differentiable)."""
-        carry, body, flat_of = self._loop(setup, state)
+        carry, body, iterate_of = self._loop(setup, state)
         out, _ = jax.lax.scan(lambda c, _: (body(c), None), carry, None, length=iterations)
-        return self._unflat(flat_of(out))
+        return iterate_of(out)
 
     def _loop(self, setup: LocalSetup, state: ADMMState) -> tuple[Any, Any, Any]:
         """Both runners' loop: its initial carry, one iteration, and the iterate
         in the carry (the carry is the iterate itself, or with ``anderson`` the
         iterate and the acceleration's history)."""
-        st0 = self._flat(state)
         if not self.anderson:
-            return st0, lambda st: self._step_flat(setup, st), lambda st: st
-        carry = (st0, _anderson_init(self._point(st0), self.anderson))
+            return state, lambda st: self._step(setup, st), lambda st: st
+        carry = (state, _anderson_init(self._point(state), self.anderson))
         return carry, lambda c: self._accelerated(setup, c), lambda c: c[0]
 
     # -- Anderson acceleration (``anderson`` > 0) ------------------------------------
     @staticmethod
-    def _point(st: _Flat) -> Any:
+    def _point(st: ADMMState) -> Any:
         """The ADMM map's argument (Z, gamma), flattened (U is an output only)."""
         return jnp.concatenate([st.Z.ravel(), st.gamma.ravel()])
 
     @staticmethod
-    def _at(x: Any, st: _Flat) -> _Flat:
+    def _at(x: Any, st: ADMMState) -> ADMMState:
         nz = st.Z.size
         return st._replace(Z=x[:nz].reshape(st.Z.shape), gamma=x[nz:].reshape(st.gamma.shape))
 
     def _accelerated(self, setup: LocalSetup, carry: tuple) -> tuple:
         """One ADMM map evaluation at the Anderson point, then the next point."""
         st, a = carry
-        out = self._step_flat(setup, self._at(a.x, st))
+        out = self._step(setup, self._at(a.x, st))
         return out, _anderson_step(a, self._point(out))
 
     def result(self, setup: LocalSetup, state: ADMMState) -> SolveResult:
@@ -1236,7 +1266,8 @@ class LocalExplicit:
         lay = _layout(T)
         dt = setup.rho.dtype
         P = jnp.asarray(lay.P, dt)
-        total = sum(state.U[j] @ P[j, : lay.u_sizes[j]] for j in range(T.n_objectives))
+        # sum_j U_j P_j as one broadcast sum (fused; padded columns select nothing)
+        total = jnp.sum(state.U[..., None] * P[:, None], axis=(0, 2))
         count = lay.P.sum(axis=(0, 1))
         u = jnp.clip(total / jnp.asarray(count, dt), setup.lb, setup.ub)
         conv = self.converged(state)

@@ -45,7 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .formulations import _ANDERSON_MAX, ADMMState, LocalExplicit, shift_state
+from .formulations import _ANDERSON_MAX, ADMMState, LocalExplicit, cold_state, shift_state
 from .integrated import IntegratedADMM, merged_topology
 from .manoeuvres import (
     SCENARIOS,
@@ -494,20 +494,7 @@ def controller_solver(config: SimConfig, topology: Topology) -> LocalExplicit | 
 
 def _zero_state(topology: Topology, dtype: Any) -> ADMMState:
     """The cold-start iterate of alg:1 (zeros; residuals inf) for ``topology``."""
-    T = topology
-    inf = jnp.full((T.n_objectives,), jnp.inf, dtype)
-    return ADMMState(
-        U=tuple(
-            jnp.zeros((T.horizon, len(T.group_columns(j))), dtype) for j in range(T.n_objectives)
-        ),
-        Z=jnp.zeros((T.horizon, T.n_c), dtype),
-        gamma=tuple(
-            jnp.zeros((T.horizon, len(T.group_rows(j))), dtype) for j in range(T.n_objectives)
-        ),
-        iteration=jnp.zeros((), jnp.int32),
-        primal=inf,
-        dual=inf,
-    )
+    return cold_state(topology, dtype)
 
 
 # --------------------------------------------------------------------------- the log

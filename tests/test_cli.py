@@ -66,3 +66,23 @@ def exit_code(args):
 def test_solve_rejects_bad_solver_options(capsys, args, message):
     assert exit_code(["solve", "cruise_control", *args]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_warm_start_file_round_trip(capsys, tmp_path):
+    """--warm-start reads a previous --json output (per-objective U, Z, gamma)."""
+    cold = run_json(capsys, "--formulation", "local_explicit", "--tol", "1e-8")
+    ws = cold["warm_state"]
+    assert len(ws["U"]) == len(ws["gamma"]) == len(cold["rho"])
+    path = tmp_path / "first.json"
+    path.write_text(json.dumps(cold))
+    warm = run_json(
+        capsys, "--formulation", "local_explicit", "--tol", "1e-8", "--warm-start", str(path)
+    )
+    assert warm["converged"]
+    for agent, u0 in cold["u0"].items():
+        np.testing.assert_allclose(warm["u0"][agent], u0, rtol=1e-3, atol=1e-2)
+    bad = dict(cold, warm_state=dict(ws, gamma=ws["gamma"][:1]))
+    path.write_text(json.dumps(bad))
+    code = exit_code(["solve", "cruise_control", "--warm-start", str(path)])
+    err = capsys.readouterr().err
+    assert code != 0 and "does not match this problem" in err and "one array per objective" in err

@@ -87,11 +87,14 @@ def test_row_layouts_give_the_same_iterates(monkeypatch):
         monkeypatch.setattr(F, "_COMPACT_ROWS", factor)
         F._layout.cache_clear()
         assert F._layout(T).compact == (factor == 1.0)
-        runs.append(jax.jit(lambda x: solver.solve_fixed(x, 30))(d))
+        res = jax.jit(lambda x: solver.solve_fixed(x, 30))(d)
+        # the layouts pad gamma differently: read it per objective under its own layout
+        runs.append((res, solver.multipliers(res.state)))
     F._layout.cache_clear()
-    compact, all_rows = runs
+    (compact, gamma_compact), (all_rows, gamma_all_rows) = runs
+    assert compact.state.gamma.shape != all_rows.state.gamma.shape
     np.testing.assert_allclose(all_rows.u, compact.u, rtol=1e-9, atol=1e-9)
-    for a, b in zip(all_rows.state.gamma, compact.state.gamma, strict=True):
+    for a, b in zip(gamma_all_rows, gamma_compact, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(all_rows.state.Z, compact.state.Z, rtol=1e-9, atol=1e-9)
 
@@ -176,6 +179,7 @@ def equal_weight_step(solver, setup, state):
     """The printed eq.F3_dual (equal weights 1/m_(c)); used only to show it is wrong."""
     T = solver.topology
     out = solver.step(setup, state)
+    U, gam0 = solver.local_inputs(out), solver.multipliers(state)
     num = jnp.zeros_like(state.Z)
     count = jnp.zeros_like(state.Z)
     Ain, b = [], []
@@ -184,15 +188,15 @@ def equal_weight_step(solver, setup, state):
         Aj, bj = solver.objective_constraints(setup, j)
         Ain.append(Aj)
         b.append(bj)
-        v = -(out.U[j] @ Ain[j].T) - state.gamma[j] / setup.rho[j] + b[j]
+        v = -(U[j] @ Ain[j].T) - gam0[j] / setup.rho[j] + b[j]
         num = num.at[:, rows].add(v)
         count = count.at[:, rows].add(1.0)
     Z = jnp.maximum(num / count, 0.0)
     gam = tuple(
-        state.gamma[j] + setup.rho[j] * (out.U[j] @ Ain[j].T - b[j] + Z[:, list(T.group_rows(j))])
+        gam0[j] + setup.rho[j] * (U[j] @ Ain[j].T - b[j] + Z[:, list(T.group_rows(j))])
         for j in range(T.n_objectives)
     )
-    return out._replace(Z=Z, gamma=gam)
+    return solver.state_of(U, Z, gam)
 
 
 def test_printed_equal_weight_average_is_not_exact():
@@ -365,6 +369,62 @@ def test_warm_start_shift_converges_to_same_and_saves_iterations():
     np.testing.assert_allclose(fn(d2, None, held).u0, cold.u0, atol=1e-3)
     with pytest.raises(ValueError, match="steps"):
         shift_state(first.state, 2)
+
+
+@pytest.mark.parametrize("n_obj,shared", [(2, "all"), (3, "both")])
+def test_state_views_round_trip(n_obj, shared):
+    """ADMMState is padded and objective-stacked; the per-objective views and
+    state_of convert both ways, and the stacked shift is the per-objective one."""
+    problems = [random_problem(seed, n_obj, shared=shared) for seed in range(3)]
+    T = problems[0].topology
+    solver = LocalExplicit(T, max_iter=5000, tol_primal=1e-10, tol_dual=1e-10)
+    res = jax.jit(solver.solve)(problems[0].data())
+    st = res.state
+    U, gam = solver.local_inputs(st), solver.multipliers(st)
+    for j in range(n_obj):
+        assert U[j].shape == (T.horizon, len(T.group_columns(j)))
+        assert gam[j].shape == (T.horizon, len(T.group_rows(j)))
+    # each objective's copy of an input agrees with the consensus output at the optimum
+    for j in range(n_obj):
+        np.testing.assert_allclose(U[j], res.u[:, list(T.group_columns(j))], atol=1e-3)
+    back = solver.state_of(U, st.Z, gam)
+    np.testing.assert_array_equal(back.gamma, st.gamma)  # padding stays zero in the loop
+    for a, b in zip(solver.local_inputs(back), U, strict=True):
+        np.testing.assert_array_equal(a, b)
+    # restarting from the converged iterate: converged after one iteration, same u
+    again = jax.jit(solver.solve)(problems[0].data(), None, back)
+    assert int(again.iterations) <= 2
+    np.testing.assert_allclose(again.u, res.u, atol=1e-6)
+    # shift_state on the stacked arrays = the per-objective shift
+    sh = shift_state(st)
+    for a, b in zip(solver.local_inputs(sh), U, strict=True):
+        np.testing.assert_array_equal(a, jnp.concatenate([b[1:], b[-1:]]))
+    for a, b in zip(solver.multipliers(sh), gam, strict=True):
+        np.testing.assert_array_equal(a, jnp.concatenate([b[1:], b[-1:]]))
+    # batched results keep their leading axis in the views
+    batch = jax.jit(jax.vmap(solver.solve))(stack([p.data() for p in problems]))
+    assert solver.local_inputs(batch.state)[0].shape == (3, *U[0].shape)
+    assert solver.multipliers(batch.state)[-1].shape == (3, *gam[-1].shape)
+
+
+def test_warm_state_shapes_are_checked():
+    p = random_problem(1, 2, shared="all")
+    T, d = p.topology, p.data()
+    solver = LocalExplicit(T)
+    st = jax.jit(solver.solve)(d).state
+    U, gam = solver.local_inputs(st), solver.multipliers(st)
+    with pytest.raises(ValueError, match=r"U\[1\]: expected shape"):
+        solver.state_of((U[0], U[1][:, :1]), st.Z, gam)
+    with pytest.raises(ValueError, match=r"gamma\[0\]: expected shape"):
+        solver.state_of(U, st.Z, (gam[0][:-1], gam[1]))
+    with pytest.raises(ValueError, match="one array per objective"):
+        solver.state_of(U[:1], st.Z, gam)
+    with pytest.raises(ValueError, match="Z: expected shape"):
+        solver.state_of(U, st.Z[:, :-1], gam)
+    with pytest.raises(ValueError, match="warm.gamma: expected shape"):
+        solver.solve(d, None, st._replace(gamma=st.gamma[:, :, :-1]))
+    with pytest.raises(TypeError, match="warm: expected an ADMMState"):
+        solver.solve(d, None, tuple(st))
 
 
 @pytest.mark.parametrize("inverse,anderson", [("formed", 0), ("factored", 0), ("factored", 3)])
