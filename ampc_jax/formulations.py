@@ -268,15 +268,16 @@ def _sweep_inverse(M: Any) -> Any:
     return -jax.lax.fori_loop(0, n, sweep, M)
 
 
-# Up to this size the sweeps are used for one (unbatched) problem too. Since
-# the solver loops compile into single kernels (``ampc_jax``'s XLA flag) the
-# sweeps' ``fori_loop`` is one kernel too, and beats LAPACK's two calls up to
-# 12 x 12 (2026-11-30, one core): the N_p = 10 cruise benchmark's warm step
-# (10 x 10 Woodbury matrix) 96 to 99 us against 105 to 106 us with 4, N_p = 20
-# unchanged (its 20 x 20 matrix stays with LAPACK); the stability closed loop's
-# 6 x 6 and 9 x 9 matrices: 63 against 68 us (Local Explicit), 59 against 62 us
-# (IntegratedADMM). Before the flag, 4 was the faster choice.
-_SWEEP_MAX = 12
+# Up to this size the sweeps are used for one (unbatched) problem too: faster
+# than LAPACK for the per-step U x U blocks. Larger sizes were measured twice:
+# before the single-kernel loop flag, 12 made the N_p = 10 cruise step slower
+# (189 to 201 us against 151 to 153 us). With the flag (2026-11-30, one core)
+# 12 made most steps 3 to 5 us faster (the stability closed loop's 6 x 6 to
+# 12 x 12 matrices, both solvers; the N_p = 10 step without acceleration), but
+# with Anderson acceleration at N_p = 10 the step went onto XLA:CPU's thread
+# pool (jax.profiler: "ThunkExecutor::Execute (wait for completion)"; its two
+# independent 10 x 10 sweeps are parallel branches) and took 102 against 78 us.
+_SWEEP_MAX = 4
 
 
 @jax.custom_batching.custom_vmap
@@ -302,7 +303,7 @@ def _spd_inverse_batched(axis_size: int, in_batched: Any, M: Any) -> tuple[Any, 
 def _spd_inverse(M: Any) -> Any:
     """Inverse of a batch (..., n, n) of symmetric positive definite matrices.
 
-    Small matrices (n <= _SWEEP_MAX = 12) and every vmapped batch use symmetric sweeps in
+    Small matrices (n <= 4, ``_SWEEP_MAX``) and every vmapped batch use symmetric sweeps in
     pure JAX (:func:`_sweep_inverse`); a single larger problem uses LAPACK
     (:func:`_lapack_spd_inverse`). Reverse-mode derivative d(M^-1) = -M^-1 dM M^-1.
     """
