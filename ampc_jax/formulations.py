@@ -269,58 +269,67 @@ def _sweep_inverse(M: Any) -> Any:
 
 
 # Up to this size the sweeps are used for one (unbatched) problem too: faster
-# than LAPACK for the per-step U x U blocks. Larger sizes were measured twice:
-# before the single-kernel loop flag, 12 made the N_p = 10 cruise step slower
-# (189 to 201 us against 151 to 153 us). With the flag (2026-11-30, one core)
-# 12 made most steps 3 to 5 us faster (the stability closed loop's 6 x 6 to
-# 12 x 12 matrices, both solvers; the N_p = 10 step without acceleration), but
-# with Anderson acceleration at N_p = 10 the step went onto XLA:CPU's thread
-# pool (jax.profiler: "ThunkExecutor::Execute (wait for completion)"; its two
-# independent 10 x 10 sweeps are parallel branches) and took 102 against 78 us.
+# than LAPACK for small blocks. Larger sizes were measured twice: before the
+# single-kernel loop flag, 12 made the N_p = 10 cruise step slower (189 to 201
+# us against 151 to 153 us). With the flag (2026-11-30, one core) 12 made most
+# steps 3 to 5 us faster, but with Anderson acceleration at N_p = 10 the step
+# went onto XLA:CPU's thread pool (jax.profiler: "ThunkExecutor::Execute (wait
+# for completion)"; the sweeps of the Woodbury path's 10 x 10 matrices were
+# parallel branches) and took 102 against 78 us. So: the Woodbury path's
+# matrices up to 4 x 4 (``_SWEEP_MAX``); the dense path's H_j + delta I (for
+# eq.opt_ro) and K_j, which follow one another, up to 12 x 12
+# (``_SWEEP_MAX_DENSE``; the stability closed loop's 9 x 9 and 12 x 12: both
+# solvers 4 to 5 us faster per step).
 _SWEEP_MAX = 4
+_SWEEP_MAX_DENSE = 12
 
 
-@jax.custom_batching.custom_vmap
-def _spd_inverse_impl(M: Any) -> Any:
-    if M.shape[-1] <= _SWEEP_MAX:
-        return _sweep_inverse(M)
-    return _lapack_spd_inverse(M)
+def _make_spd_inverse(sweep_max: int) -> Any:
+    """:func:`_spd_inverse` with sweeps up to ``sweep_max`` x ``sweep_max``."""
+
+    @jax.custom_batching.custom_vmap
+    def impl(M: Any) -> Any:
+        if M.shape[-1] <= sweep_max:
+            return _sweep_inverse(M)
+        return _lapack_spd_inverse(M)
+
+    @impl.def_vmap
+    def batched(axis_size: int, in_batched: Any, M: Any) -> tuple[Any, bool]:
+        # Batched (vmap over scenarios): always the sweeps. XLA:CPU's batched LAPACK
+        # kernels fan their batch out into the intra-op thread pool they run on and
+        # wait for it, which deadlocks once every pool thread runs such a kernel
+        # (two CPU devices sharding a batch on two cores: ampc_jax.batch).
+        (is_batched,) = in_batched
+        if not is_batched:
+            return impl(M), False
+        return _sweep_inverse(M), True
+
+    @jax.custom_vjp
+    def inverse(M: Any) -> Any:
+        return impl(M)
+
+    def fwd(M: Any) -> tuple[Any, Any]:
+        X = impl(M)
+        return X, X
+
+    def bwd(X: Any, g: Any) -> tuple[Any]:
+        Xt = jnp.swapaxes(X, -1, -2)
+        return (-(Xt @ g @ Xt),)
+
+    inverse.defvjp(fwd, bwd)
+    return inverse
 
 
-@_spd_inverse_impl.def_vmap
-def _spd_inverse_batched(axis_size: int, in_batched: Any, M: Any) -> tuple[Any, bool]:
-    # Batched (vmap over scenarios): always the sweeps. XLA:CPU's batched LAPACK
-    # kernels fan their batch out into the intra-op thread pool they run on and
-    # wait for it, which deadlocks once every pool thread runs such a kernel
-    # (two CPU devices sharding a batch on two cores: ampc_jax.batch).
-    (batched,) = in_batched
-    if not batched:
-        return _spd_inverse_impl(M), False
-    return _sweep_inverse(M), True
+_spd_inverse = _make_spd_inverse(_SWEEP_MAX)
+"""Inverse of a batch (..., n, n) of symmetric positive definite matrices.
 
+Small matrices (n <= 4, ``_SWEEP_MAX``) and every vmapped batch use symmetric
+sweeps in pure JAX (:func:`_sweep_inverse`); a single larger problem uses
+LAPACK (:func:`_lapack_spd_inverse`). Reverse-mode derivative
+d(M^-1) = -M^-1 dM M^-1."""
 
-@jax.custom_vjp
-def _spd_inverse(M: Any) -> Any:
-    """Inverse of a batch (..., n, n) of symmetric positive definite matrices.
-
-    Small matrices (n <= 4, ``_SWEEP_MAX``) and every vmapped batch use symmetric sweeps in
-    pure JAX (:func:`_sweep_inverse`); a single larger problem uses LAPACK
-    (:func:`_lapack_spd_inverse`). Reverse-mode derivative d(M^-1) = -M^-1 dM M^-1.
-    """
-    return _spd_inverse_impl(M)
-
-
-def _spd_inverse_fwd(M: Any) -> tuple[Any, Any]:
-    X = _spd_inverse_impl(M)
-    return X, X
-
-
-def _spd_inverse_bwd(X: Any, g: Any) -> tuple[Any]:
-    Xt = jnp.swapaxes(X, -1, -2)
-    return (-(Xt @ g @ Xt),)
-
-
-_spd_inverse.defvjp(_spd_inverse_fwd, _spd_inverse_bwd)
+_spd_inverse_dense = _make_spd_inverse(_SWEEP_MAX_DENSE)
+""":func:`_spd_inverse` for the dense path's H_j and K_j (sweeps up to ``_SWEEP_MAX_DENSE``)."""
 
 
 def _small_cholesky(A: Any) -> Any:
@@ -1019,7 +1028,7 @@ class LocalExplicit:
             else:
                 Kinv = _lowrank_inverse(c, BK, N)
         else:
-            Kinv = _spd_inverse(c.H + _block_diag(rho_arr[:, None, None] * AtA, N))
+            Kinv = _spd_inverse_dense(c.H + _block_diag(rho_arr[:, None, None] * AtA, N))
         KE = _apply_inverse(Kinv, c.E)
         den = rho_arr @ jnp.asarray(lay.carried, dt)
         return LocalSetup(
@@ -1064,7 +1073,7 @@ class LocalExplicit:
                     BHd = c.BH + delta * jnp.eye(U, dtype=dt)
                     rho_full = _power_rho_lowrank(c, BHd, LamB, mask, self.rho_iterations, N)
                 else:
-                    Hinv = _spd_inverse(H + delta * jnp.eye(N * U, dtype=dt))
+                    Hinv = _spd_inverse_dense(H + delta * jnp.eye(N * U, dtype=dt))
                     rho_full = _power_rho(H, Hinv, LamB, mask, self.rho_iterations)
             else:
                 # exact: G = L^-1 H L^-T padded with the mean real eigenvalue
