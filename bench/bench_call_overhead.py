@@ -7,7 +7,8 @@ over the steps), for Local Explicit and for IntegratedADMM (the r_time peer,
 warm started from its own previous solution):
 
 * ``full``: ``jax.jit(solver.solve)``, the call ``replay_timing`` times (the
-  whole SolveResult comes back: 13 to 15 arrays);
+  whole SolveResult comes back: 13 arrays for either solver, the state in the
+  solver's stacked layout);
 * ``no-op``: a jitted function with the same arguments and the same output
   structure that does no solving (sums its inputs into the outputs): JAX's
   cost of the call itself (argument handling, output buffers, dispatch);
