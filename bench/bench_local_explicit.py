@@ -444,12 +444,25 @@ def main(argv: list[str] | None = None) -> int:
         help="comma-separated names from CONFIGS for the latency part (default: all)",
     )
     ap.add_argument(
+        "--sync-dispatch",
+        action="store_true",
+        help="run JAX's CPU client synchronously (jax_cpu_enable_async_dispatch=False), "
+        "as a single-device controller can; the latency part only",
+    )
+    ap.add_argument(
         "--throughput-config",
         default="tuned",
         choices=list(CONFIGS),
         help="the configuration of the throughput part",
     )
     args = ap.parse_args(argv)
+    if args.sync_dispatch:
+        if args.only != "latency":
+            ap.error(
+                "--sync-dispatch: with --only latency (it would serialise the sharded batches)"
+            )
+        # read when JAX creates its CPU client, so before the first computation
+        jax.config.update("jax_cpu_enable_async_dispatch", False)
     configs = list(CONFIGS) if args.configs is None else args.configs.split(",")
     for name in configs:
         if name not in CONFIGS:
@@ -464,11 +477,15 @@ def main(argv: list[str] | None = None) -> int:
     results = {
         "jax": jax.__version__,
         "devices": str(jax.devices()),
+        "dispatch": "synchronous" if args.sync_dispatch else "asynchronous (JAX's default)",
         "configs": {k: {kk: str(v) for kk, v in c.items()} for k, c in CONFIGS.items()},
         "latency": [],
         "throughput": [],
     }
-    print(f"jax {jax.__version__} on {jax.devices()}; tolerance eps_r = eps_s = {TOL}")
+    print(
+        f"jax {jax.__version__} on {jax.devices()}; tolerance eps_r = eps_s = {TOL}; "
+        f"dispatch {results['dispatch']}"
+    )
     print(f"configurations: {CONFIGS}")
     horizons = [int(h) for h in args.horizons.split(",")]
     dtypes = args.dtypes.split(",")
