@@ -799,8 +799,10 @@ def shift_state(state: ADMMState, steps: int = 1) -> ADMMState:
     )
 
 
-def cold_state(topology: Topology, dtype: Any = jnp.float64) -> ADMMState:
-    """The cold start of alg:1 for ``topology``: zeros, residuals inf."""
+def cold_state(topology: Topology, dtype: Any = None) -> ADMMState:
+    """The cold start of alg:1 for ``topology``: zeros, residuals inf (``dtype``:
+    default JAX's float, float64 with ``jax_enable_x64``)."""
+    dtype = jnp.result_type(float) if dtype is None else dtype
     lay = _layout(topology)
     J, U = lay.cols.shape
     N = topology.horizon

@@ -45,7 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .formulations import _ANDERSON_MAX, ADMMState, LocalExplicit, cold_state, shift_state
+from .formulations import _ANDERSON_MAX, LocalExplicit, cold_state, shift_state
 from .integrated import IntegratedADMM, merged_topology
 from .manoeuvres import (
     SCENARIOS,
@@ -492,11 +492,6 @@ def controller_solver(config: SimConfig, topology: Topology) -> LocalExplicit | 
     return local_explicit_solver(config, topology)
 
 
-def _zero_state(topology: Topology, dtype: Any) -> ADMMState:
-    """The cold-start iterate of alg:1 (zeros; residuals inf) for ``topology``."""
-    return cold_state(topology, dtype)
-
-
 # --------------------------------------------------------------------------- the log
 class SimLog(NamedTuple):
     """Per-step arrays of one closed-loop run (leading axis: control step k).
@@ -618,8 +613,8 @@ class Simulator:
         use_ctrl = c.formulation != "none"
         ctrl = self.controller() if use_ctrl else None
         shadow = self.shadow_solver(dtype) if (use_ctrl and c.shadow) else None
-        ctrl_cold = _zero_state(self._controller_topology(), dtype) if use_ctrl else None
-        shadow_cold = _zero_state(merged_topology(T), dtype) if shadow is not None else None
+        ctrl_cold = cold_state(self._controller_topology(), dtype) if use_ctrl else None
+        shadow_cold = cold_state(merged_topology(T), dtype) if shadow is not None else None
         fault = jnp.zeros((n_steps,), bool) if fault is None else jnp.asarray(fault, bool)
         nan = jnp.asarray(jnp.nan, dtype)
 
@@ -1013,7 +1008,7 @@ def replay_timing(config: SimConfig, log: SimLog, repeats: int = 3) -> dict[str,
     data, warm = log.data, log.warm
     K = int(np.shape(log.t)[0])
     dtype = data.A.dtype
-    cold_i = _zero_state(merged_topology(T), dtype)
+    cold_i = cold_state(merged_topology(T), dtype)
     d0 = jax.tree.map(lambda x: x[0], data)
     w0 = jax.tree.map(lambda x: x[0], warm)
     f_le = jax.jit(le.solve).lower(d0, None, w0).compile()

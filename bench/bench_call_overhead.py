@@ -32,10 +32,9 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 import ampc_jax  # noqa: F401  (its XLA flags; JAX starts its backend later)
-from ampc_jax.formulations import shift_state
+from ampc_jax.formulations import cold_state, shift_state
 from ampc_jax.integrated import merged_topology
 from ampc_jax.simulation import (
-    _zero_state,
     build_topology,
     config_for,
     integrated_solver,
@@ -80,7 +79,7 @@ def run(name: str) -> dict[str, float]:
     K = len(log.t)
     ds = [jax.device_put(jax.tree.map(lambda x, k=k: x[k], log.data)) for k in range(K)]
     ws = [jax.device_put(jax.tree.map(lambda x, k=k: x[k], log.warm)) for k in range(K)]
-    cold = _zero_state(merged_topology(T), jnp.float64)
+    cold = cold_state(merged_topology(T), jnp.float64)
     # the peer's warm chain, as in replay_timing
     full_i = jax.jit(ia.solve).lower(ds[0], None, cold).compile()
     wis = [cold]

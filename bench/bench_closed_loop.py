@@ -94,9 +94,9 @@ def replay(
     import jax
     import jax.numpy as jnp
 
-    from ampc_jax.formulations import LocalExplicit, shift_state
+    from ampc_jax.formulations import LocalExplicit, cold_state, shift_state
     from ampc_jax.integrated import IntegratedADMM, merged_data, merged_topology
-    from ampc_jax.simulation import _input_columns, _zero_state, build_topology
+    from ampc_jax.simulation import _input_columns, build_topology
 
     T, agent_idx, _ = build_topology(config)
     tp = config.tol_primal if tol is None else tol
@@ -106,14 +106,14 @@ def replay(
     if integrated:
         solver = IntegratedADMM(T, **kw)
         inner = solver.inner
-        cold = _zero_state(merged_topology(T), dt)
+        cold = cold_state(merged_topology(T), dt)
 
         def rho_star(d: Any) -> Any:
             return inner.setup(merged_data(d)).rho
 
     else:
         solver = LocalExplicit(T, **kw)
-        cold = _zero_state(T, dt)
+        cold = cold_state(T, dt)
 
         def rho_star(d: Any) -> Any:
             return solver.setup(d).rho

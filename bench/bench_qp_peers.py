@@ -66,11 +66,10 @@ def run_scenario(name: str, tols: list[float], repeats: int) -> list[dict[str, A
     import jax.numpy as jnp
     import jaxopt
 
-    from ampc_jax.formulations import shift_horizon, shift_state
+    from ampc_jax.formulations import cold_state, shift_horizon, shift_state
     from ampc_jax.integrated import condensed_qp, merged_topology
     from ampc_jax.simulation import (
         _input_columns,
-        _zero_state,
         build_topology,
         integrated_solver,
         local_explicit_solver,
@@ -91,7 +90,7 @@ def run_scenario(name: str, tols: list[float], repeats: int) -> list[dict[str, A
     le = local_explicit_solver(cfg, T)
     ia = integrated_solver(cfg, T, max_iter=max(cfg.max_iter, 2000))
     shift = cfg.warm_shift
-    cold_i = _zero_state(merged_topology(T), datas[0].A.dtype)
+    cold_i = cold_state(merged_topology(T), datas[0].A.dtype)
     f_le = jax.jit(le.solve).lower(datas[0], None, warms[0]).compile()
     f_ia = jax.jit(ia.solve).lower(datas[0], None, cold_i).compile()
 
