@@ -651,6 +651,21 @@ _ANDERSON_SAFEGUARD = 2.0
 the previous one is dropped: the history restarts from the last accepted image."""
 
 
+def _anderson_memory(value: Any) -> int:
+    """``value`` as an Anderson memory (an integer in 0..``_ANDERSON_MAX``), or a
+    ValueError naming the field (``LocalExplicit.anderson``, ``SimConfig.anderson``)."""
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, np.integer))
+        or not 0 <= int(value) <= _ANDERSON_MAX
+    ):
+        raise ValueError(
+            f"anderson: expected an integer memory in 0..{_ANDERSON_MAX} "
+            f"(0 = plain ADMM), got {value!r}"
+        )
+    return int(value)
+
+
 class _Anderson(NamedTuple):
     """Anderson acceleration's carry (x: the iterate (Z, gamma) flattened).
 
@@ -786,8 +801,6 @@ def shift_state(state: ADMMState, steps: int = 1) -> ADMMState:
     vehicle examples' short horizons (N_p = 2 to 3) that needed fewer
     iterations in the stability example (``docs/results.md``).
     """
-    if steps not in (0, 1):
-        raise ValueError(f"steps: expected 0 (hold) or 1 (shift), got {steps!r}")
     inf = jnp.full_like(state.primal, jnp.inf)
     return ADMMState(
         U=shift_horizon(state.U, steps, axis=1),
@@ -933,16 +946,7 @@ class LocalExplicit:
             )
         if not 0.0 < float(self.relaxation) < 2.0:
             raise ValueError(f"relaxation: expected a value in (0, 2), got {self.relaxation}")
-        if (
-            isinstance(self.anderson, bool)
-            or not isinstance(self.anderson, (int, np.integer))
-            or not 0 <= int(self.anderson) <= _ANDERSON_MAX
-        ):
-            raise ValueError(
-                f"anderson: expected an integer memory in 0..{_ANDERSON_MAX} "
-                f"(0 = plain ADMM), got {self.anderson!r}"
-            )
-        object.__setattr__(self, "anderson", int(self.anderson))
+        object.__setattr__(self, "anderson", _anderson_memory(self.anderson))
         self.topology.check_local_explicit()
 
     def _own(self, j: int) -> np.ndarray:
@@ -1169,7 +1173,8 @@ class LocalExplicit:
         return cold._replace(U=Up, Z=Zp, gamma=gp)
 
     # -- one iteration --------------------------------------------------------------
-    def _step(self, setup: LocalSetup, st: ADMMState) -> ADMMState:
+    def step(self, setup: LocalSetup, st: ADMMState) -> ADMMState:
+        """One ADMM iteration: local, global and dual updates (alg:1 steps 5-9)."""
         T = self.topology
         lay = _layout(T)
         J, U = lay.cols.shape
@@ -1225,10 +1230,6 @@ class LocalExplicit:
         dual = jnp.sum(dz * dz, axis=(1, 2))
         return ADMMState(Uf.reshape(J, N, U), Z, gamma, st.iteration + 1, primal, dual)
 
-    def step(self, setup: LocalSetup, state: ADMMState) -> ADMMState:
-        """One ADMM iteration: local, global and dual updates (alg:1 steps 5-9)."""
-        return self._step(setup, state)
-
     def converged(self, state: ADMMState) -> Any:
         """eq.Convergence for every objective (see ``dual_residual``)."""
         return jnp.all((state.primal <= self.tol_primal) & (state.dual <= self.tol_dual))
@@ -1255,7 +1256,7 @@ class LocalExplicit:
         in the carry (the carry is the iterate itself, or with ``anderson`` the
         iterate and the acceleration's history)."""
         if not self.anderson:
-            return state, lambda st: self._step(setup, st), lambda st: st
+            return state, lambda st: self.step(setup, st), lambda st: st
         carry = (state, _anderson_init(self._point(state), self.anderson))
         return carry, lambda c: self._accelerated(setup, c), lambda c: c[0]
 
@@ -1273,7 +1274,7 @@ class LocalExplicit:
     def _accelerated(self, setup: LocalSetup, carry: tuple) -> tuple:
         """One ADMM map evaluation at the Anderson point, then the next point."""
         st, a = carry
-        out = self._step(setup, self._at(a.x, st))
+        out = self.step(setup, self._at(a.x, st))
         return out, _anderson_step(a, self._point(out))
 
     def result(self, setup: LocalSetup, state: ADMMState) -> SolveResult:

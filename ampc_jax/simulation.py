@@ -45,7 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .formulations import _ANDERSON_MAX, LocalExplicit, cold_state, shift_state
+from .formulations import LocalExplicit, _anderson_memory, cold_state, shift_state
 from .integrated import IntegratedADMM, merged_topology
 from .manoeuvres import (
     SCENARIOS,
@@ -145,8 +145,8 @@ CONTROLLER_DEFAULTS: dict[str, dict[str, Any]] = {
         "shadow_rho_scale": 1.0,  # shadow: p95 143 -> 84 iterations
         "shadow_relaxation": 1.8,
         # off: p95 already 15 / 23 (launch/brake / DLC). Memory 3 gave 14 / 22, but
-        # the step then ran on XLA:CPU's thread pool (seen with jax.profiler; the
-        # dense K_j^-1 here is over 512 bytes) and r_time went 1.16 -> 1.33
+        # the step then ran on XLA:CPU's thread pool (seen with jax.profiler; its
+        # buffers are over 512 bytes) and r_time went 1.05 / 1.06 -> 1.25 / 1.27
         "anderson": 0,
     },
 }
@@ -277,16 +277,7 @@ class SimConfig:
         if isinstance(ws, bool) or ws not in (0, 1):
             raise ValueError(f"warm_shift: expected 0 (hold) or 1 (shift), got {ws!r}")
         object.__setattr__(self, "warm_shift", int(ws))
-        aa = self.anderson
-        if (
-            isinstance(aa, bool)
-            or not isinstance(aa, (int, np.integer))
-            or not 0 <= aa <= _ANDERSON_MAX
-        ):
-            raise ValueError(
-                f"anderson: expected an integer memory in 0..{_ANDERSON_MAX} (0 = off), got {aa!r}"
-            )
-        object.__setattr__(self, "anderson", int(aa))
+        object.__setattr__(self, "anderson", _anderson_memory(self.anderson))
         n_obj = len(self.objectives_all)
         scale = self.rho_scale
         try:
