@@ -121,7 +121,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
 
     from .formulations import LocalExplicit
     from .integrated import IntegratedADMM, solve_reference
-    from .results import status_name
+    from .results import USABLE_STATUS, status_name
     from .topology import Problem, ProblemError
 
     path = _resolve_problem(args.problem)
@@ -216,13 +216,24 @@ def cmd_solve(args: argparse.Namespace) -> int:
             "Z": np.asarray(st.Z).tolist(),
             "gamma": [np.asarray(x).tolist() for x in solver.multipliers(st)],
         }
-    if not np.all(np.isfinite(u)):
+    usable = int(res.status) in USABLE_STATUS and bool(np.all(np.isfinite(u)))
+    if not usable:
+        # never print a number that is not a solution (an infeasibility
+        # certificate, a NaN marker read as a value) as an input
         out["u0"] = {k: None for k in per_agent}
+        out["u"] = {k: None for k in per_agent}
+        print(
+            f"ampc: no solution ({status_name(res.status)}); u and u0 are null",
+            file=sys.stderr,
+        )
+    for key in ("primal_residual", "dual_residual"):
+        if not np.isfinite(out[key]):
+            out[key] = None
     if args.json:
-        print(json.dumps(out))
+        print(json.dumps(out, allow_nan=False))
     else:
         _print_table(out, T)
-    return 0 if res.status in (0, 1) else 1
+    return 0 if usable else 1
 
 
 def _print_table(out: dict[str, Any], T: Any) -> None:
@@ -231,7 +242,11 @@ def _print_table(out: dict[str, Any], T: Any) -> None:
         f"status       {out['status']} after {out['iterations']} iterations "
         f"(converged: {out['converged']})"
     )
-    print(f"residuals    primal {out['primal_residual']:.3g}  dual {out['dual_residual']:.3g}")
+
+    def num(v: Any) -> str:
+        return "n/a" if v is None else f"{v:.3g}"
+
+    print(f"residuals    primal {num(out['primal_residual'])}  dual {num(out['dual_residual'])}")
     if out["rho"]:
         print("rho          " + "  ".join(f"{k}={v:.4g}" for k, v in out["rho"].items()))
     print(
@@ -241,7 +256,7 @@ def _print_table(out: dict[str, Any], T: Any) -> None:
     width = max(len(n) for n in T.agent_names)
     print(f"{'agent':<{width}}  first-step inputs U^(0)")
     for name, vals in out["u0"].items():
-        text = "  ".join(f"{v:12.5g}" for v in vals) if vals is not None else "non-finite"
+        text = "  ".join(f"{v:12.5g}" for v in vals) if vals is not None else "no solution"
         print(f"{name:<{width}}  {text}")
 
 

@@ -1107,7 +1107,13 @@ class LocalExplicit:
         return jnp.stack(out)
 
     def init(self, setup: LocalSetup, warm: ADMMState | None = None) -> ADMMState:
-        """Cold start (zeros, as alg:1) or a warm start state (see :func:`shift_state`)."""
+        """Cold start (zeros, as alg:1) or a warm start state (see :func:`shift_state`).
+
+        A warm state's U, Z and gamma are kept; its iteration count and
+        residuals are reset, so that a previous result's ``.state`` passed as
+        it is (not shifted) still iterates on the new data instead of being
+        taken as converged.
+        """
         cold = cold_state(self.topology, setup.rho.dtype)
         if warm is None:
             return cold
@@ -1123,7 +1129,7 @@ class LocalExplicit:
                     f"(ADMMState is in the solver's padded layout; build one from "
                     f"per-objective arrays with LocalExplicit.state_of), got {jnp.shape(got)}"
                 )
-        return warm
+        return warm._replace(iteration=cold.iteration, primal=cold.primal, dual=cold.dual)
 
     # -- per-objective views of the padded state ------------------------------------
     def local_inputs(self, state: ADMMState) -> tuple:

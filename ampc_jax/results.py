@@ -6,7 +6,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-__all__ = ["STATUS", "SolveResult", "status_name"]
+__all__ = ["STATUS", "USABLE_STATUS", "SolveResult", "status_name"]
 
 #: Status codes carried by :class:`SolveResult` (an int inside jit).
 STATUS = {
@@ -15,7 +15,11 @@ STATUS = {
     2: "numerical_error",
     3: "infeasible",
     4: "solver_error",
+    5: "solved_inaccurate",  # reference solvers only: Clarabel AlmostSolved, OSQP inaccurate
 }
+
+#: Codes whose inputs are a solution (exact, at the iteration cap, or inaccurate).
+USABLE_STATUS = (0, 1, 5)
 
 
 def status_name(code: Any) -> str:

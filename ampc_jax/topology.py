@@ -85,8 +85,9 @@ def _array(value: Any, field_name: str) -> np.ndarray:
     return arr
 
 
-def _bound(value: Any, field_name: str, n: int) -> np.ndarray:
-    """Bounds may be +-inf (no row) but never NaN."""
+def _bound(value: Any, field_name: str, n: int, side: str) -> np.ndarray:
+    """Bounds may be -inf (``side="lower"``) or +inf (upper): no row; never
+    NaN, and never the infinity that no input can satisfy."""
     try:
         arr = np.asarray(value, dtype=float)
     except (TypeError, ValueError) as exc:
@@ -97,6 +98,13 @@ def _bound(value: Any, field_name: str, n: int) -> np.ndarray:
         raise ProblemError(f"{field_name}: expected {n} numbers, got shape {arr.shape}")
     if np.any(np.isnan(arr)):
         raise ProblemError(f"{field_name}: contains NaN; use a number or +-inf (no bound)")
+    wrong = np.inf if side == "lower" else -np.inf
+    if np.any(arr == wrong):
+        free = "-inf" if side == "lower" else "+inf"
+        raise ProblemError(
+            f"{field_name}: contains {'+' if wrong > 0 else '-'}inf, which no input "
+            f"satisfies; use a number, or {free} for no {side} bound"
+        )
     return arr
 
 
@@ -208,7 +216,8 @@ class Objective:
     ----------
     name : unique name.
     C : (n_y, n_x) observation matrix C_j.
-    Q : (n_y, n_y) positive definite weight Q_j, or its diagonal.
+    Q : (n_y, n_y) weight Q_j (positive semi-definite: a zero weight on an
+        output is allowed), or its diagonal.
     ref : (n_y,) held over the horizon, or (N_p, n_y) for predicted steps 1..N_p
         (NOTES item 19).
     agents : names of the agent group S_j; derived from the model when omitted.
@@ -363,8 +372,8 @@ class Problem:
                 )
             nu = B.shape[1]
             R = _weight(a.R, f"agents[{i}].R ({name})", nu, definite=False)
-            lb = _bound(a.lb, f"agents[{i}].lb ({name})", nu)
-            ub = _bound(a.ub, f"agents[{i}].ub ({name})", nu)
+            lb = _bound(a.lb, f"agents[{i}].lb ({name})", nu, "lower")
+            ub = _bound(a.ub, f"agents[{i}].ub ({name})", nu, "upper")
             bad = np.nonzero(lb > ub)[0]
             if bad.size:
                 k = int(bad[0])
@@ -398,7 +407,7 @@ class Problem:
                     f"objectives[{j}].C ({name}): expected an n_y x {nx} matrix, got shape {C.shape}"
                 )
             ny = C.shape[0]
-            Q = _weight(o.Q, f"objectives[{j}].Q ({name})", ny, definite=True)
+            Q = _weight(o.Q, f"objectives[{j}].Q ({name})", ny, definite=False)
             ref = _per_step(o.ref, f"objectives[{j}].ref ({name})", ny, horizon)
             if o.agents is None:
                 group = tuple(i for i, B in enumerate(Bs) if _influences(C, powers, B))

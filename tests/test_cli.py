@@ -86,3 +86,96 @@ def test_warm_start_file_round_trip(capsys, tmp_path):
     code = exit_code(["solve", "cruise_control", "--warm-start", str(path)])
     err = capsys.readouterr().err
     assert code != 0 and "does not match this problem" in err and "one array per objective" in err
+
+
+def _problem_file(tmp_path, **changes):
+    """A small problem (two objectives sharing agent b) written to a file."""
+    d = {
+        "horizon": 4,
+        "A": [[1.0, 0.1, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.9]],
+        "x0": [0.0, 0.0, 0.0],
+        "agents": [
+            {"name": "a", "B": [[0.0], [1.0], [0.0]], "R": [0.1], "lb": [-1], "ub": [1]},
+            {"name": "b", "B": [[0.0], [0.5], [1.0]], "R": [0.2], "lb": [-1], "ub": [1]},
+            {"name": "c", "B": [[0.0], [0.0], [1.0]], "R": [0.3], "lb": [-2], "ub": [2]},
+        ],
+        "objectives": [
+            {"name": "pos", "C": [[1.0, 0.0, 0.0]], "Q": [1.0], "ref": [1.0]},
+            {"name": "z", "C": [[0.0, 0.0, 1.0]], "Q": [2.0], "ref": [0.5]},
+        ],
+    }
+    d.update(changes)
+    path = tmp_path / "problem.json"
+    path.write_text(json.dumps(d))
+    return str(path)
+
+
+def test_integrated_solvers_agree_with_local_explicit(capsys):
+    le = run_json(
+        capsys, "--formulation", "local_explicit", "--tol", "1e-10", "--max-iter", "20000"
+    )
+    for solver in ("clarabel", "osqp", "jax"):
+        ref = run_json(
+            capsys,
+            "--formulation",
+            "integrated",
+            "--solver",
+            solver,
+            "--tol",
+            "1e-10",
+            "--max-iter",
+            "20000",
+        )
+        assert ref["status"] == "solved", solver
+        for agent, u0 in le["u0"].items():
+            np.testing.assert_allclose(ref["u0"][agent], u0, rtol=1e-3, atol=1e-4, err_msg=solver)
+        if solver == "jax":
+            assert list(ref["rho"]) == ["integrated"]
+
+
+def test_given_rho_and_iteration_cap(capsys):
+    out = run_json(capsys, "--rho", "3.5", "--max-iter", "3")
+    assert set(out["rho"].values()) == {3.5}
+    assert out["iterations"] == 3 and out["status"] == "max_iter_reached"
+    assert not out["converged"]
+
+
+def test_table_output(capsys):
+    assert main(["solve", "cruise_control"]) == 0
+    text = capsys.readouterr().out
+    assert text.startswith("formulation  local_explicit")
+    assert "status       solved after" in text and "first-step inputs U^(0)" in text
+    for agent in ("DTR", "RTV", "FDB"):
+        assert f"\n{agent} " in text
+
+
+@pytest.mark.parametrize("solver", ["clarabel", "osqp"])
+def test_infeasible_problem_prints_no_inputs(capsys, tmp_path, solver):
+    # -u_a <= -5 with u_a <= 1: no input satisfies both
+    path = _problem_file(tmp_path, constraints=[{"A": {"a": [[-1.0]]}, "b": [-5.0]}])
+    code = main(["solve", path, "--formulation", "integrated", "--solver", solver, "--json"])
+    out = capsys.readouterr()
+    assert code == 1
+    result = json.loads(out.out)  # strict JSON: no NaN
+    assert result["status"] == "infeasible"
+    assert set(result["u0"].values()) == {None} and set(result["u"].values()) == {None}
+    assert "no solution (infeasible)" in out.err
+
+
+def test_bad_problem_files_go_to_stderr(capsys, tmp_path):
+    assert main(["solve", str(tmp_path / "missing.json")]) == 2
+    assert "missing.json" in capsys.readouterr().err
+    broken = tmp_path / "broken.json"
+    broken.write_text("{not json")
+    assert main(["solve", str(broken)]) == 2
+    assert "broken.json" in capsys.readouterr().err
+    # agent c without bounds is on no constraint row (NOTES item 10)
+    free = _problem_file(tmp_path)
+    d = json.loads(open(free).read())
+    d["agents"][2].update(lb=[float("-inf")], ub=[float("inf")])
+    with open(free, "w") as f:
+        f.write(json.dumps(d).replace("Infinity", "1e999"))
+    code = main(["solve", free, "--formulation", "local_explicit", "--json"])
+    out = capsys.readouterr()
+    assert code == 2 and out.out == ""
+    assert out.err.startswith("ampc: error: agents[2] (c): input 0 appears in no constraint row")

@@ -131,8 +131,31 @@ BAD = [
     (("agents", 0, "lb"), [2.0], r"agents\[0\]\.lb \(a\): lb > ub at input 0"),
     (("agents", 0, "ub"), [math.nan], r"agents\[0\]\.ub \(a\): contains NaN"),
     (("agents", 0, "B"), KeyError, r"agents\[0\]\.B: required key is missing"),
-    (("objectives", 0, "Q"), [0.0], r"objectives\[0\]\.Q \(pos\): must be positive definite"),
-    (("objectives", 0, "Q"), [-1.0], r"objectives\[0\]\.Q \(pos\): must be positive definite"),
+    (
+        ("objectives", 0, "Q"),
+        [-1.0],
+        r"objectives\[0\]\.Q \(pos\): must be positive semi-definite, not negative",
+    ),
+    (("objectives", 0, "Q"), [math.inf], r"objectives\[0\]\.Q \(pos\): contains inf"),
+    (("agents", 1, "lb"), [-1], r"agents\[1\]\.lb \(b\): expected 2 numbers, got shape \(1,\)"),
+    (
+        ("agents", 1, "ub"),
+        [1, 1, 1],
+        r"agents\[1\]\.ub \(b\): expected 2 numbers, got shape \(3,\)",
+    ),
+    (("agents", 0, "lb"), [math.inf], r"agents\[0\]\.lb \(a\): contains \+inf, which no input"),
+    (("agents", 0, "ub"), [-math.inf], r"agents\[0\]\.ub \(a\): contains -inf, which no input"),
+    (("agents", 0, "B"), [[0.0], [math.inf], [0.0]], r"agents\[0\]\.B \(a\): contains inf"),
+    (("agents", 1, "R"), [0.1, math.inf], r"agents\[1\]\.R \(b\): contains inf"),
+    (("A",), [[1, 0, 0], [0, -math.inf, 0], [0, 0, 1]], r"A: contains inf"),
+    (("w",), [0, math.inf, 0], r"w: contains inf"),
+    (("objectives", 0, "C"), [[math.inf, 0, 0]], r"objectives\[0\]\.C \(pos\): contains inf"),
+    (("objectives", 0, "ref"), [math.inf], r"objectives\[0\]\.ref \(pos\): contains inf"),
+    (
+        ("objectives", 0, "agents"),
+        ["a", "a"],
+        r"objectives\[0\]\.agents \(pos\): agent 'a' listed twice",
+    ),
     (("objectives", 1, "Q"), [[1.0, 2.0], [2.0, 1.0]], r"objectives\[1\]\.Q \(z\): expected 1 x 1"),
     (
         ("objectives", 0, "C"),
@@ -219,3 +242,36 @@ def test_missing_file_and_bad_json(tmp_path):
     f.write_text("{not json")
     with pytest.raises(ProblemError, match=r"not valid JSON"):
         Problem.from_json(f)
+
+
+@pytest.mark.parametrize(
+    "Q,message",
+    [
+        ([[1.0, 0.5], [0.0, 1.0]], r"objectives\[1\]\.Q \(z\): must be symmetric"),
+        (
+            [[1.0, 2.0], [2.0, 1.0]],
+            r"objectives\[1\]\.Q \(z\): must be positive semi-definite, not negative "
+            r"\(smallest eigenvalue -1\)",
+        ),
+    ],
+)
+def test_bad_matrix_weight_of_two_outputs(Q, message):
+    d = base()
+    d["objectives"][1]["C"] = [[0.0, 0.0, 1.0], [0.0, 1.0, 0.0]]
+    d["objectives"][1]["ref"] = [0.5, 0.0]
+    d["objectives"][1]["Q"] = Q
+    with pytest.raises(ProblemError, match=message):
+        Problem.from_dict(d)
+
+
+def test_semidefinite_weight_and_one_sided_bounds_are_accepted():
+    d = base()
+    d["objectives"][1]["C"] = [[0.0, 0.0, 1.0], [0.0, 1.0, 0.0]]
+    d["objectives"][1]["ref"] = [0.5, 0.0]
+    d["objectives"][1]["Q"] = [[1.0, 1.0], [1.0, 1.0]]  # rank 1: weights x3 + x2
+    d["agents"][0]["lb"] = [-math.inf]
+    d["agents"][2]["ub"] = [math.inf]
+    p = Problem.from_dict(d)
+    np.testing.assert_allclose(p.data().Q[1], [[1.0, 1.0], [1.0, 1.0]])
+    # an infinite side makes no constraint row: 8 box rows less the two free sides
+    assert p.topology.n_c == 6
