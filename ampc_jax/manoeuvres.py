@@ -24,10 +24,14 @@ ISO 3888-1 double lane change (section lengths 15/30/25/25/15/30 m): lane 1
 (entry) X in [0, 15], transition [15, 45], lane 3 (side lane) [45, 70],
 transition [70, 95], lane 5 (exit) [95, 110], run-out [110, 140].  The
 reference centre line moves by the nominal lateral offset (3.5 m) with a
-quintic over each transition.  The standard defines the offset between cone
-lines and the lane widths from the vehicle width (1.1 w + 0.25, w + 1,
-1.3 w + 0.25), so the centre-line offset for a real test differs by a few
-tenths of a metre; ``offset`` is a parameter.
+quintic over each transition.  The standard sets the lane widths from the
+vehicle width w (1.1 w + 0.25, 1.2 w + 0.25 for the side lane, 1.3 w + 0.25)
+and the 3.5 m offset between cone lines, not between centre lines.  Read as
+Project Chrono's ISO 3888-1 demo reads it (the side lane's near cone line
+3.5 m from the entry lane's centre line), the side lane's centre is at
+3.5 + (1.2 w + 0.25) / 2, about 4.7 m for w = 1.9 m, so the bare 3.5 m used
+here is the milder manoeuvre; the exit lane shares the entry lane's right
+cone line, about 0.1 w off its centre.  ``offset`` is a parameter.
 """
 
 from __future__ import annotations

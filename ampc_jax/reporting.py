@@ -131,13 +131,31 @@ def _bar(total: int, quiet: bool) -> Any:
     return tqdm(total=total, disable=quiet, bar_format="{desc:<28}{bar:20}| {n_fmt}/{total_fmt}")
 
 
+def _replay(cfg: Any, log: Any, repeats: int, quiet: bool) -> dict:
+    """:func:`replay_timing` with a bar over the replayed control steps."""
+    from tqdm import tqdm
+
+    from .simulation import replay_timing
+
+    n = int(np.shape(log.t)[0])
+    with tqdm(
+        total=n,
+        disable=quiet,
+        leave=False,
+        unit="step",
+        bar_format="  {desc}{bar:20}| {n_fmt}/{total_fmt} steps [{elapsed}<{remaining}]",
+        desc="replayed ",
+    ) as steps:
+        return replay_timing(cfg, log, repeats=repeats, progress=steps.update)
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     """``ampc simulate``: one scenario's closed loop, its metrics and figures."""
     _enable_x64(args.float32)
     import jax.numpy as jnp
 
     from .manoeuvres import SCENARIOS
-    from .simulation import config_for, replay_timing, simulate, with_settings
+    from .simulation import config_for, simulate, with_settings
 
     if args.scenario not in SCENARIOS:
         print(
@@ -179,7 +197,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         import jax
 
         log = jax.tree.map(jnp.asarray, res.log)
-        res.timing = replay_timing(cfg, log, repeats=args.repeats)
+        res.timing = _replay(cfg, log, args.repeats, args.quiet)
     bar.update(1)
     bar.set_description("write csv/json")
     m = res.metrics()
@@ -280,7 +298,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     import jax
     import jax.numpy as jnp
 
-    from .simulation import config_for, replay_timing, simulate
+    from .simulation import config_for, simulate
 
     out = Path(args.out)
     t_start = time.perf_counter()
@@ -289,7 +307,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     both = simulate("cruise_lane_change", config_for("cruise_lane_change"))
     bar.update(1)
     bar.set_description("LST+YRT: replay timing")
-    both.timing = replay_timing(both.config, jax.tree.map(jnp.asarray, both.log), repeats=3)
+    both.timing = _replay(both.config, jax.tree.map(jnp.asarray, both.log), 3, args.quiet)
     bar.update(1)
     bar.set_description("LST only: compile + run")
     lst = simulate("cruise_lane_change", config_for("cruise_lane_change", disabled=("YRT",)))

@@ -38,6 +38,7 @@ On 2-core CPUs batched programs can deadlock intermittently
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
@@ -662,6 +663,10 @@ class Simulator:
                     )
                     u_sh_full = u_sh_full.at[cols].set(sh.u0)
                     sh_iters, sh_status = sh.iterations, sh.status
+            if c.example == "cruise" and not use_ctrl:
+                # no MPC: the driver's speed PI plays DTR, within DTR's bounds
+                dtr_max = jnp.asarray(c.settings.dtr_max, dtype)
+                u_full = u_full.at[0].set(jnp.clip(T_drv, -dtr_max, dtr_max))
             torques = self.wheel_torques(u_full, T_drv)
             y_ref = yaw_rate_reference(meas.v_x, steer, mu, p)
             om_ref = (
@@ -967,7 +972,12 @@ def simulate(
 
 
 # --------------------------------------------------------------------------- r_time
-def replay_timing(config: SimConfig, log: SimLog, repeats: int = 3) -> dict[str, np.ndarray]:
+def replay_timing(
+    config: SimConfig,
+    log: SimLog,
+    repeats: int = 3,
+    progress: Callable[[int], Any] | None = None,
+) -> dict[str, np.ndarray]:
     """Time eq.t_ratio per step by replaying the logged ProblemData.
 
     What is timed, for both Local Explicit and IntegratedADMM: one call of an
@@ -983,6 +993,9 @@ def replay_timing(config: SimConfig, log: SimLog, repeats: int = 3) -> dict[str,
     it had in the loop; IntegratedADMM is replayed sequentially from its own
     shifted previous solution at the same tolerance (cold at every step when
     ``config.warm_start`` is False).
+
+    ``progress``, if given, is called with 1 after every replayed step (a
+    progress bar's ``update``).
 
     Returns
     -------
@@ -1030,6 +1043,8 @@ def replay_timing(config: SimConfig, log: SimLog, repeats: int = 3) -> dict[str,
         it_i[k] = int(r.iterations)
         ok = int(r.status) in _OK_STATUS and bool(np.all(np.isfinite(np.asarray(r.u))))
         w_i = shift_state(r.state, config.warm_shift) if (config.warm_start and ok) else cold_i
+        if progress is not None:
+            progress(1)
     return {
         "t_distributed": t_d,
         "t_integrated": t_i,

@@ -265,3 +265,39 @@ def test_tuned_settings_are_the_defaults():
     assert config_for("cruise_lane_change").settings == CruiseSettings()
     assert config_for("stability_launch_brake").settings == StabilitySettings()
     assert config_for("stability_dlc").settings == StabilitySettings()
+
+
+def test_cruise_driver_alone_drives_the_car():
+    """Cruise with no MPC: the driver's speed PI plays DTR (rear axle, within
+    DTR's bounds), so the car follows the speed profile instead of coasting."""
+    cfg = config_for("cruise_lane_change", formulation="none", shadow=False)
+    res = simulate("cruise_lane_change", cfg, duration=4.0)
+    lg = res.log
+    dtr_max = cfg.settings.dtr_max
+    assert np.all(np.isfinite(lg.torques))
+    np.testing.assert_allclose(lg.u[:, 0], np.clip(lg.driver_torque, -dtr_max, dtr_max))
+    np.testing.assert_allclose(lg.torques[:, 2], 0.5 * lg.u[:, 0])  # split on the rear axle
+    np.testing.assert_allclose(lg.torques[:, 3], 0.5 * lg.u[:, 0])
+    assert np.all(lg.torques[:, :2] == 0.0) and np.any(lg.u[:, 0] < -100.0)
+    err = np.abs(np.asarray(lg.v_x) - np.asarray(lg.v_ref))
+    assert float(lg.v_ref[-1]) < float(lg.v_ref[0]) - 2.0  # the profile decelerates
+    assert float(np.max(err[20:])) < 1.0, float(np.max(err[20:]))
+
+
+def test_simulate_batch_matches_single_runs():
+    """The vmapped closed loop equals one run per case (per-case friction)."""
+    from ampc_jax.manoeuvres import SCENARIOS, stack_scenarios
+    from ampc_jax.simulation import simulate_batch
+
+    name = "stability_launch_brake"
+    cfg = config_for(name, shadow=False)
+    spec = SCENARIOS[name]
+    mus = (0.3, 0.5)
+    logs = simulate_batch(cfg, stack_scenarios([spec, spec]), 20, mu=jnp.asarray(mus))
+    for b, mu in enumerate(mus):
+        one = simulate(name, cfg, duration=1.0, mu=mu).log
+        for field in ("v_x", "yaw_rate", "omega", "u", "torques", "iterations"):
+            np.testing.assert_allclose(
+                np.asarray(getattr(logs, field)[b]), getattr(one, field), rtol=1e-9, atol=1e-9
+            )
+    assert not np.allclose(np.asarray(logs.omega[0]), np.asarray(logs.omega[1]))
