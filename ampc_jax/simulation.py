@@ -145,10 +145,12 @@ CONTROLLER_DEFAULTS: dict[str, dict[str, Any]] = {
         "integrated_rho_scale": 1.2,  # its own best at alpha 1.6
         "shadow_rho_scale": 1.0,  # shadow: p95 143 -> 84 iterations
         "shadow_relaxation": 1.8,
-        # off: p95 already 15 / 23 (launch/brake / DLC). Memory 3 gave 14 / 22, but
-        # the step then ran on XLA:CPU's thread pool (seen with jax.profiler; its
-        # buffers are over 512 bytes) and r_time went 1.05 / 1.06 -> 1.25 / 1.27
-        "anderson": 0,
+        # Anderson memory 3 (launch/brake / DLC, 2026-11-30, docs/results.md):
+        # iterations p95 15 / 23 -> 13 / 22, max 21 / 36 -> 21 / 24, r_time
+        # 1.07 / 1.06 -> 1.06 / 1.06. (It was off until then: Local Explicit's
+        # step with it ran partly on XLA:CPU's thread pool, r_time 1.25 / 1.27;
+        # since the warm state's counters are reset in ``init`` it does not.)
+        "anderson": 3,
     },
 }
 """Per-example defaults of the solver options of :class:`SimConfig` (see its docstring)."""

@@ -115,11 +115,17 @@ def test_launch_brake_driver_alone_spins_rear_wheels():
     assert np.all(np.isfinite(np.asarray(vx))) and float(jnp.min(vx)) > 0.5
 
 
-def test_stability_dlc_driver_alone_slips():
+def test_stability_dlc_driver_alone_spins_out():
+    """2800 Nm on the rear axle in the second lane change: a rear wheel spins
+    up, the rear axle loses its side force and the driver alone loses the car
+    (with the plant's wheel dynamics step-converged; the earlier wheel step
+    was too slow to spin the wheel and the driver recovered)."""
     spec = SCENARIOS["stability_dlc"]
     _, (X, Y, vx, steer, T, _, slip) = simulate(spec.scenario, spec.n_steps)
     assert np.asarray(slip)[:, 2:].max() > 0.5
-    assert float(jnp.min(vx)) > 5.0  # the driver keeps the car (no spin-out)
+    err = np.abs(np.asarray(Y - path_y(spec.scenario.path, X)))
+    assert err.max() > 5.0  # off the course
+    assert np.all(np.isfinite(np.asarray(vx)))
 
 
 def test_scenarios_registry_and_stacking():
