@@ -576,8 +576,9 @@ def _power_rho(H: Any, Hinv: Any, LamB: Any, mask: Any, iterations: int) -> Any:
     x'Hx / x'Lambda x, which lies inside [mu_min, mu_max], so mu_max is under-
     and mu_min over-estimated. rho only sets the convergence rate (the
     solution does not depend on it): ``rho_iterations`` = 8 gave rho within
-    10 % of the exact eigendecomposition on the generated and the cruise
-    problems (tests/test_formulations.py states the tolerance).
+    10 % of the exact eigendecomposition on the generated problems (worst
+    8.7 %, ``test_power_rho_close_to_exact``) and within 1 % on the shipped
+    cruise example (``examples/cruise_control.json``: 0.95 % and 0.06 %).
 
     H, Hinv : (J, n, n); LamB : (J, U, U) the per-step block of Lambda;
     mask : (J, n) 1 on real entries. The two operators are formed (for one

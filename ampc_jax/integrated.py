@@ -236,11 +236,20 @@ class OSQPReference:
         P = sp.coo_matrix((qp.H[rows, cols], (rows, cols)), shape=(n, n)).tocsc()
         self._P_rows = P.indices
         self._P_cols = np.repeat(np.arange(P.shape[1]), np.diff(P.indptr))
+        # G = I_{N_p} (x) A_in: every entry of its diagonal blocks kept (explicit
+        # zeros too), so new general-row coefficients never change its sparsity
+        N = topology.horizon
+        nc, nu = np.shape(data.Ain)
+        blocks = sp.kron(sp.identity(N, format="csc"), np.ones((nc, nu)), format="csc")
+        G_rows = blocks.indices
+        G_cols = np.repeat(np.arange(blocks.shape[1]), np.diff(blocks.indptr))
+        A = sp.csc_matrix((qp.G[G_rows, G_cols], blocks.indices, blocks.indptr), blocks.shape)
+        self._G_rows, self._G_cols = G_rows, G_cols
         self.solver = osqp.OSQP()
         self.solver.setup(
             P=P,
             q=qp.E,
-            A=sp.csc_matrix(qp.G),
+            A=A,
             l=np.full(qp.h.shape, -np.inf),
             u=qp.h,
             eps_abs=eps,
@@ -259,11 +268,17 @@ class OSQPReference:
         self.update_qp(_numpy_qp(self.topology, data))
 
     def update_qp(self, qp: CondensedQP) -> None:
-        """Update from an already condensed QP (numpy), skipping the condensing."""
-        self.solver.update(q=qp.E, u=qp.h, Px=self._p_values(qp.H))
+        """Update from an already condensed QP (numpy), skipping the condensing:
+        q, P, the constraint rows' coefficients and their right-hand sides."""
+        self.solver.update(
+            q=qp.E,
+            u=qp.h,
+            Px=self._p_values(qp.H),
+            Ax=np.asarray(qp.G)[self._G_rows, self._G_cols],
+        )
 
     def solve(self) -> SolveResult:
-        res = self.solver.solve()
+        res = self.solver.solve(raise_error=False)  # failures become a status
         info = res.info
         status = _reference_status(str(info.status))
         T = self.topology
