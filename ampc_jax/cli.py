@@ -217,6 +217,13 @@ def cmd_solve(args: argparse.Namespace) -> int:
             "gamma": [np.asarray(x).tolist() for x in solver.multipliers(st)],
         }
     usable = int(res.status) in USABLE_STATUS and bool(np.all(np.isfinite(u)))
+    if usable and status_name(res.status) == "max_iter_reached":
+        print(
+            f"ampc: not converged: stopped at --max-iter {args.max_iter} with primal "
+            f"residual {out['primal_residual']:.3g}, dual {out['dual_residual']:.3g} "
+            f"(tolerance {args.tol:g}); u is the last iterate, projected on the bounds",
+            file=sys.stderr,
+        )
     if not usable:
         # never print a number that is not a solution (an infeasibility
         # certificate, a NaN marker read as a value) as an input
@@ -226,14 +233,23 @@ def cmd_solve(args: argparse.Namespace) -> int:
             f"ampc: no solution ({status_name(res.status)}); u and u0 are null",
             file=sys.stderr,
         )
-    for key in ("primal_residual", "dual_residual"):
-        if not np.isfinite(out[key]):
-            out[key] = None
+    out = _finite_or_none(out)  # strict JSON: any NaN or inf left becomes null
     if args.json:
         print(json.dumps(out, allow_nan=False))
     else:
         _print_table(out, T)
     return 0 if usable else 1
+
+
+def _finite_or_none(x: Any) -> Any:
+    """``x`` with every non-finite float (in dicts and lists) replaced by None."""
+    if isinstance(x, dict):
+        return {k: _finite_or_none(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_finite_or_none(v) for v in x]
+    if isinstance(x, float) and not np.isfinite(x):
+        return None
+    return x
 
 
 def _print_table(out: dict[str, Any], T: Any) -> None:
@@ -248,7 +264,7 @@ def _print_table(out: dict[str, Any], T: Any) -> None:
 
     print(f"residuals    primal {num(out['primal_residual'])}  dual {num(out['dual_residual'])}")
     if out["rho"]:
-        print("rho          " + "  ".join(f"{k}={v:.4g}" for k, v in out["rho"].items()))
+        print("rho          " + "  ".join(f"{k}={num(v)}" for k, v in out["rho"].items()))
     print(
         f"solve time   {out['solve_time_s'] * 1e3:.3f} ms (compile {out['compile_time_s']:.2f} s)"
     )

@@ -221,8 +221,10 @@ def _reference_status(name: str) -> int:
 class OSQPReference:
     """OSQP on the integrated QP with the ``setup`` / ``update`` / ``solve`` story.
 
-    ``update(data)`` changes q, P (same sparsity: dense upper triangle) and the
-    bounds for a new control step and keeps the previous solution as warm start.
+    ``update(data)`` changes q, P (same sparsity: dense upper triangle), the
+    general rows' coefficients (same sparsity: the diagonal blocks of
+    I (x) A_in kept dense) and the right-hand sides for a new control step, and
+    keeps the previous solution as warm start.
     """
 
     def __init__(self, topology: Topology, data: ProblemData, *, eps: float = 1e-6) -> None:
@@ -264,7 +266,7 @@ class OSQPReference:
         return H[self._P_rows, self._P_cols]
 
     def update(self, data: ProblemData) -> None:
-        """New control step: condense ``data`` and update q, P and the bounds."""
+        """New control step: condense ``data`` and update q, P, A and the bounds."""
         self.update_qp(_numpy_qp(self.topology, data))
 
     def update_qp(self, qp: CondensedQP) -> None:

@@ -29,7 +29,7 @@ vehicle width w (1.1 w + 0.25, 1.2 w + 0.25 for the side lane, 1.3 w + 0.25)
 and the 3.5 m offset between cone lines, not between centre lines.  Read as
 Project Chrono's ISO 3888-1 demo reads it (the side lane's near cone line
 3.5 m from the entry lane's centre line), the side lane's centre is at
-3.5 + (1.2 w + 0.25) / 2, about 4.7 m for w = 1.9 m, so the bare 3.5 m used
+3.5 + (1.2 w + 0.25) / 2, about 4.8 m for w = 1.9 m, so the bare 3.5 m used
 here is the milder manoeuvre; the exit lane shares the entry lane's right
 cone line, about 0.1 w off its centre.  ``offset`` is a parameter.
 """

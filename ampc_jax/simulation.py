@@ -135,7 +135,8 @@ CONTROLLER_DEFAULTS: dict[str, dict[str, Any]] = {
         "shadow_rho_scale": 0.5,  # shadow to 1e-8 Nm^2: p95 269 -> 116 iterations
         "shadow_relaxation": 1.8,
         # Anderson memory 3 (also for the integrated MPC it is timed against):
-        # iterations p95 17.2 -> 14, max 79 -> 30 (docs/results.md, 2026-11-30)
+        # iterations p95 17.2 -> 14, max 79 -> 30 when added (2026-11-30); 17 -> 14 and
+        # 78 -> 22 on the plant of session 12 (docs/results.md)
         "anderson": 3,
     },
     "stability": {
@@ -147,7 +148,7 @@ CONTROLLER_DEFAULTS: dict[str, dict[str, Any]] = {
         "shadow_relaxation": 1.8,
         # Anderson memory 3 (launch/brake / DLC, 2026-11-30, docs/results.md):
         # iterations p95 15 / 23 -> 13 / 22, max 21 / 36 -> 21 / 24, r_time
-        # 1.07 / 1.06 -> 1.06 / 1.06. (It was off until then: Local Explicit's
+        # 1.07 / 1.08 -> 1.06 / 1.07. (It was off until then: Local Explicit's
         # step with it ran partly on XLA:CPU's thread pool, r_time 1.25 / 1.27;
         # since the warm state's counters are reset in ``init`` it does not.)
         "anderson": 3,

@@ -156,7 +156,7 @@ def test_infeasible_problem_prints_no_inputs(capsys, tmp_path, solver):
     code = main(["solve", path, "--formulation", "integrated", "--solver", solver, "--json"])
     out = capsys.readouterr()
     assert code == 1
-    result = json.loads(out.out)  # strict JSON: no NaN
+    result = json.loads(out.out, parse_constant=pytest.fail)  # strict JSON: no NaN/Infinity
     assert result["status"] == "infeasible"
     assert set(result["u0"].values()) == {None} and set(result["u"].values()) == {None}
     assert "no solution (infeasible)" in out.err
@@ -179,3 +179,37 @@ def test_bad_problem_files_go_to_stderr(capsys, tmp_path):
     out = capsys.readouterr()
     assert code == 2 and out.out == ""
     assert out.err.startswith("ampc: error: agents[2] (c): input 0 appears in no constraint row")
+
+
+def test_overflowing_problem_gives_strict_json(capsys, tmp_path):
+    """x0 near float32's limit: no solution, and the output (warm state
+    included) is still strict JSON, every non-finite number null."""
+    from ampc_jax.cli import _finite_or_none
+
+    assert _finite_or_none({"a": [1.0, float("nan")], "b": float("inf"), "c": 2}) == {
+        "a": [1.0, None],
+        "b": None,
+        "c": 2,
+    }
+    path = tmp_path / "big.json"
+    path.write_text(
+        json.dumps(
+            {
+                "horizon": 3,
+                "A": [[1.0, 0.1], [0.0, 1.0]],
+                "x0": [3e38, 3e38],
+                "agents": [{"name": "a", "B": [[0.0], [1.0]], "R": [0.1], "lb": [-1], "ub": [1]}],
+                "objectives": [{"name": "p", "C": [[1.0, 0.0]], "Q": [1.0], "ref": [0.0]}],
+            }
+        )
+    )
+    code = main(["solve", str(path), "--float32", "--json"])
+    out = capsys.readouterr()
+    assert code == 1 and "no solution" in out.err
+    result = json.loads(out.out, parse_constant=pytest.fail)
+    assert result["u0"] == {"a": None} and result["status"] == "numerical_error"
+
+
+def test_iteration_cap_is_reported_on_stderr(capsys):
+    assert main(["solve", "cruise_control", "--max-iter", "3", "--json"]) == 0
+    assert "not converged: stopped at --max-iter 3" in capsys.readouterr().err

@@ -385,7 +385,10 @@ def test_warm_start_shift_converges_to_same_and_saves_iterations():
     capped = LocalExplicit(T, max_iter=3, tol_primal=1e-8, tol_dual=1e-8)
     stopped = jax.jit(capped.solve)(d)
     assert int(stopped.iterations) == 3
-    assert int(jax.jit(capped.solve)(d2, None, stopped.state).iterations) == 3
+    again = jax.jit(capped.solve)(d2, None, stopped.state)
+    held = jax.jit(capped.solve)(d2, None, shift_state(stopped.state, 0))
+    np.testing.assert_array_equal(again.u, held.u)  # three iterations on d2, not none
+    assert np.max(np.abs(np.asarray(again.u0) - np.asarray(stopped.u0))) > 1e-6
 
 
 @pytest.mark.parametrize("n_obj,shared", [(2, "all"), (3, "both")])
@@ -853,7 +856,7 @@ def clarabel_qp(H, q, G, h):
     P = sp.triu(sp.csc_matrix(H), format="csc")
     cone = [clarabel.NonnegativeConeT(G.shape[0])]
     sol = clarabel.DefaultSolver(P, q, sp.csc_matrix(G), h, cone, settings).solve()
-    assert str(sol.status) == "Solved", sol.status
+    assert str(sol.status) in ("Solved", "AlmostSolved"), sol.status  # 1e-11: see clarabel()
     return np.asarray(sol.x), np.asarray(sol.z), np.asarray(sol.s)
 
 

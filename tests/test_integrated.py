@@ -46,7 +46,9 @@ def clarabel(p):
     # 1.7e-4 (6x the tolerance on an input of 0.027) on a RICH problem; its gap
     # tolerances do not bound the inputs' error
     ref = solve_reference(p.topology, p.data(), "clarabel", eps=1e-12)
-    assert ref.status == 0
+    # at 1e-12 Clarabel may end "AlmostSolved" (status 5) on another BLAS; the
+    # comparisons' 1e-3 tolerance judges the answer either way
+    assert ref.status in (0, 5), ref.status
     return ref
 
 
@@ -202,3 +204,29 @@ def test_osqp_reference_update_with_new_general_row_coefficients():
     osqp.solve()
     osqp.update(second.data())
     assert_same_optimum(osqp.solve().u, clarabel(second).u, what="after the update")
+
+
+@pytest.mark.parametrize(
+    "text,code",
+    [
+        ("Solved", 0),
+        ("AlmostSolved", 5),
+        ("PrimalInfeasible", 3),
+        ("AlmostPrimalInfeasible", 3),
+        ("DualInfeasible", 3),
+        ("MaxIterations", 4),
+        ("NumericalError", 4),
+        ("solved", 0),
+        ("solved inaccurate", 5),
+        ("primal infeasible", 3),
+        ("primal infeasible inaccurate", 3),
+        ("maximum iterations reached", 4),
+        ("run time limit reached", 4),
+        ("unsolved", 4),
+    ],
+)
+def test_reference_status_names(text, code):
+    """Clarabel's and OSQP's status texts as STATUS codes (inaccurate apart)."""
+    from ampc_jax.integrated import _reference_status
+
+    assert _reference_status(text) == code
