@@ -146,6 +146,8 @@ def cmd_solve(args: argparse.Namespace) -> int:
             except ValueError as e:
                 return _fail(str(e))
             rho = None if args.rho is None else jnp.full((T.n_objectives,), args.rho, dtype)
+            if rho is None:
+                _check_definite_hessians(T, problem.data(jnp.float64))
             warm = None
             if args.warm_start:
                 warm = _warm_state(args.warm_start, solver, dtype)
@@ -179,6 +181,12 @@ def cmd_solve(args: argparse.Namespace) -> int:
                 except ValueError as e:
                     return _fail(str(e))
                 rho = None if args.rho is None else jnp.asarray([args.rho], dtype)
+                if rho is None:
+                    from .integrated import merged_data, merged_topology
+
+                    _check_definite_hessians(
+                        merged_topology(T), merged_data(problem.data(jnp.float64))
+                    )
                 fn = jax.jit(solver.solve)
                 t0 = time.perf_counter()
                 compiled = fn.lower(data, rho).compile()
@@ -239,6 +247,28 @@ def cmd_solve(args: argparse.Namespace) -> int:
     else:
         _print_table(out, T)
     return 0 if usable else 1
+
+
+def _check_definite_hessians(T: Any, data: Any) -> None:
+    """eq.opt_ro needs H_j^-1: refuse a singular H_j (an input direction that
+    costs nothing in objective j, e.g. R_(i) = 0 and Q_j blind to it).
+
+    Raises ValueError naming the objective; ``--rho VALUE`` skips the check.
+    """
+    from .formulations import local_costs
+
+    Hs, _ = local_costs(T, data)
+    for j, H in enumerate(Hs):
+        ev = np.linalg.eigvalsh(np.asarray(H, dtype=float))
+        if ev[0] <= 1e-12 * max(ev[-1], 1e-300):
+            name = T.objective_names[j] if hasattr(T, "objective_names") else str(j)
+            raise ValueError(
+                f"objectives[{j}] ({name}): its Hessian H_j is singular (smallest "
+                f"eigenvalue {ev[0]:.3g}, largest {ev[-1]:.3g}): some input direction "
+                f"costs nothing in it (R_(i) = 0 and Q_j blind to it), so eq.opt_ro's "
+                f"rho* (which needs H_j^-1) is undefined; give --rho VALUE, or positive "
+                f"weights"
+            )
 
 
 def _finite_or_none(x: Any) -> Any:

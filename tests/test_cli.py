@@ -213,3 +213,42 @@ def test_overflowing_problem_gives_strict_json(capsys, tmp_path):
 def test_iteration_cap_is_reported_on_stderr(capsys):
     assert main(["solve", "cruise_control", "--max-iter", "3", "--json"]) == 0
     assert "not converged: stopped at --max-iter 3" in capsys.readouterr().err
+
+
+def test_singular_hessian_needs_a_given_rho(capsys, tmp_path):
+    """R_a = 0 and Q blind to a's last step: H_j is singular, eq.opt_ro's rho*
+    (which needs H_j^-1) is undefined: refused naming the objective; with
+    --rho the solve matches Clarabel's first step."""
+    path = tmp_path / "singular.json"
+    path.write_text(
+        json.dumps(
+            {
+                "horizon": 3,
+                "A": [[1.0, 0.1], [0.0, 1.0]],
+                "x0": [0.0, 0.0],
+                "agents": [
+                    {"name": "a", "B": [[0.0], [1.0]], "R": [0.0]},
+                    {"name": "b", "B": [[0.0], [0.5]], "R": [0.1], "lb": [-1], "ub": [1]},
+                ],
+                "objectives": [
+                    {"name": "o", "C": [[1.0, 0.0], [0.0, 1.0]], "Q": [1.0, 0.0], "ref": [1.0, 0.0]}
+                ],
+                "constraints": [{"A": {"a": [[1.0]], "b": [[1.0]]}, "b": [0.5]}],
+            }
+        )
+    )
+    for extra in ([], ["--formulation", "integrated", "--solver", "jax"]):
+        assert main(["solve", str(path), "--json", *extra]) == 2
+        assert "H_j is singular" in capsys.readouterr().err
+    given = run_json_file(capsys, path, "--rho", "0.5", "--max-iter", "5000", "--tol", "1e-10")
+    ref = run_json_file(capsys, path, "--formulation", "integrated", "--solver", "clarabel")
+    assert given["converged"]
+    for agent, u0 in ref["u0"].items():
+        np.testing.assert_allclose(given["u0"][agent], u0, rtol=1e-3, atol=1e-4)
+
+
+def run_json_file(capsys, path, *args):
+    code = main(["solve", str(path), "--json", *args])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    return json.loads(out.out)
