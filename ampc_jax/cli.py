@@ -225,7 +225,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
             "gamma": [np.asarray(x).tolist() for x in solver.multipliers(st)],
         }
     usable = int(res.status) in USABLE_STATUS and bool(np.all(np.isfinite(u)))
-    if usable and status_name(res.status) == "max_iter_reached":
+    if usable and int(res.status) == 1:  # max_iter_reached
         print(
             f"ampc: not converged: stopped at --max-iter {args.max_iter} with primal "
             f"residual {out['primal_residual']:.3g}, dual {out['dual_residual']:.3g} "
@@ -250,25 +250,17 @@ def cmd_solve(args: argparse.Namespace) -> int:
 
 
 def _check_definite_hessians(T: Any, data: Any) -> None:
-    """eq.opt_ro needs H_j^-1: refuse a singular H_j (an input direction that
-    costs nothing in objective j, e.g. R_(i) = 0 and Q_j blind to it).
+    """Refuse a singular H_j (:func:`~ampc_jax.formulations.singular_hessians`)
+    naming the objective; ``--rho VALUE`` skips the check."""
+    from .formulations import singular_hessians
 
-    Raises ValueError naming the objective; ``--rho VALUE`` skips the check.
-    """
-    from .formulations import local_costs
-
-    Hs, _ = local_costs(T, data)
-    for j, H in enumerate(Hs):
-        ev = np.linalg.eigvalsh(np.asarray(H, dtype=float))
-        if ev[0] <= 1e-12 * max(ev[-1], 1e-300):
-            name = T.objective_names[j] if hasattr(T, "objective_names") else str(j)
-            raise ValueError(
-                f"objectives[{j}] ({name}): its Hessian H_j is singular (smallest "
-                f"eigenvalue {ev[0]:.3g}, largest {ev[-1]:.3g}): some input direction "
-                f"costs nothing in it (R_(i) = 0 and Q_j blind to it), so eq.opt_ro's "
-                f"rho* (which needs H_j^-1) is undefined; give --rho VALUE, or positive "
-                f"weights"
-            )
+    for j, low, high in singular_hessians(T, data):
+        raise ValueError(
+            f"objectives[{j}] ({T.objective_names[j]}): its Hessian H_j is singular "
+            f"(smallest eigenvalue {low:.3g}, largest {high:.3g}): some input direction "
+            f"costs nothing in it (R_(i) = 0 and Q_j blind to it), so eq.opt_ro's rho* "
+            f"(which needs H_j^-1) is undefined; give --rho VALUE, or positive weights"
+        )
 
 
 def _finite_or_none(x: Any) -> Any:

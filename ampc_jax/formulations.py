@@ -78,6 +78,7 @@ __all__ = [
     "optimal_rho",
     "shift_horizon",
     "shift_state",
+    "singular_hessians",
 ]
 
 
@@ -487,6 +488,26 @@ def local_costs(topology: Topology, data: ProblemData) -> tuple[tuple, tuple]:
     Hs = tuple(_unpad_matrix(H[j], n, U, N) for j, n in enumerate(lay.u_sizes))
     Es = tuple(E[j].reshape(N, U)[:, :n].reshape(-1) for j, n in enumerate(lay.u_sizes))
     return Hs, Es
+
+
+def singular_hessians(
+    topology: Topology, data: ProblemData, rtol: float = 1e-12
+) -> tuple[tuple[int, float, float], ...]:
+    """Objectives whose H_j is singular: ``(j, smallest, largest eigenvalue)``.
+
+    eq.opt_ro's rho* = 1/sqrt(lambda_1 lambda_n) of Abar H_j^-1 Abar' needs
+    H_j^-1, which does not exist when some input direction costs nothing in
+    objective j (R_(i) singular and Q_j blind to it; both are allowed). Such
+    an objective needs a given rho. Not jittable (NumPy eigenvalues of the
+    H_j of ``data``); smallest <= ``rtol`` * largest counts as singular.
+    """
+    Hs, _ = local_costs(topology, data)
+    out = []
+    for j, H in enumerate(Hs):
+        ev = np.linalg.eigvalsh(np.asarray(H, dtype=float))
+        if ev[0] <= rtol * max(ev[-1], np.finfo(float).tiny):
+            out.append((j, float(ev[0]), float(ev[-1])))
+    return tuple(out)
 
 
 def optimal_rho(H: Any, Ain: Any, horizon: int, rank: int | None = None) -> Any:
