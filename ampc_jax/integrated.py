@@ -38,6 +38,7 @@ __all__ = [
     "CondensedQP",
     "IntegratedADMM",
     "OSQPReference",
+    "clarabel_solve",
     "condensed_qp",
     "merged_data",
     "merged_topology",
@@ -139,6 +140,27 @@ def _numpy_qp(topology: Topology, data: ProblemData) -> CondensedQP:
     return CondensedQP(*(np.asarray(x, dtype=float) for x in qp))
 
 
+def clarabel_solve(qp: CondensedQP, eps: float = 1e-9) -> Any:
+    """Clarabel on ``min 1/2 U'HU + E'U s.t. G U <= h`` (numpy arrays); its
+    solution object (``x``, multipliers ``z``, slacks ``s``, ``status``, ...).
+
+    ``eps`` sets the gap and feasibility tolerances (and the KKT ratio, at most
+    1e-6).
+    """
+    import clarabel
+
+    P = sp.triu(sp.csc_matrix(qp.H), format="csc")
+    A = sp.csc_matrix(qp.G)
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    settings.tol_gap_abs = eps
+    settings.tol_gap_rel = eps
+    settings.tol_feas = eps
+    settings.tol_ktratio = min(1e-6, eps)
+    cones = [clarabel.NonnegativeConeT(A.shape[0])] if A.shape[0] else []
+    return clarabel.DefaultSolver(P, qp.E, A, qp.h, cones, settings).solve()
+
+
 def solve_reference(
     topology: Topology,
     data: ProblemData,
@@ -156,19 +178,7 @@ def solve_reference(
     n = qp.H.shape[0]
     t0 = time.perf_counter()
     if solver == "clarabel":
-        import clarabel
-
-        P = sp.triu(sp.csc_matrix(qp.H), format="csc")
-        A = sp.csc_matrix(qp.G)
-        settings = clarabel.DefaultSettings()
-        settings.verbose = False
-        settings.tol_gap_abs = eps
-        settings.tol_gap_rel = eps
-        settings.tol_feas = eps
-        settings.tol_ktratio = min(1e-6, eps)
-        cones = [clarabel.NonnegativeConeT(A.shape[0])] if A.shape[0] else []
-        s = clarabel.DefaultSolver(P, qp.E, A, qp.h, cones, settings)
-        sol = s.solve()
+        sol = clarabel_solve(qp, eps)
         elapsed = time.perf_counter() - t0
         name = str(sol.status)
         status = _reference_status(name)

@@ -846,16 +846,9 @@ def independent_qp(spec):
 
 
 def clarabel_qp(H, q, G, h):
-    import clarabel
-    import scipy.sparse as sp
+    from ampc_jax.integrated import CondensedQP, clarabel_solve
 
-    settings = clarabel.DefaultSettings()
-    settings.verbose = False
-    settings.tol_gap_abs = settings.tol_gap_rel = settings.tol_feas = 1e-11
-    settings.tol_ktratio = 1e-9
-    P = sp.triu(sp.csc_matrix(H), format="csc")
-    cone = [clarabel.NonnegativeConeT(G.shape[0])]
-    sol = clarabel.DefaultSolver(P, q, sp.csc_matrix(G), h, cone, settings).solve()
+    sol = clarabel_solve(CondensedQP(H=H, E=q, G=G, h=h), eps=1e-11)
     assert str(sol.status) in ("Solved", "AlmostSolved"), sol.status  # 1e-11: see clarabel()
     return np.asarray(sol.x), np.asarray(sol.z), np.asarray(sol.s)
 
