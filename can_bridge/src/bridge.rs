@@ -291,6 +291,7 @@ pub struct Shared {
     tx: Mutex<TxCounters>,
     rx: Mutex<RxStore>,
     log_dropped: Arc<AtomicU64>,
+    log_errors: Arc<AtomicU64>,
 }
 
 impl Shared {
@@ -303,6 +304,7 @@ impl Shared {
             tx: Mutex::new(TxCounters::new(cfg.period_ns, cfg.trace_capacity)),
             rx: Mutex::new(RxStore::new(cfg.rx_max_counter_delta)),
             log_dropped: Arc::new(AtomicU64::new(0)),
+            log_errors: Arc::new(AtomicU64::new(0)),
         }
     }
 
@@ -371,9 +373,12 @@ pub fn run_tx<C: Clock>(
         if stopping == Some(0) {
             break;
         }
+        // A reset request clears a latched fault; without one it is a no-op
+        // (it must not cut a healthy output to zero past the rate limit).
         if let Some(t) = lock(&shared.reset_at).take() {
-            safety.reset(deadline);
-            stale_before = t;
+            if safety.reset(deadline) {
+                stale_before = t;
+            }
         }
         let latest = lock(&shared.cmd).cmd;
         // The watchdog measures a command's age from the first deadline after
@@ -500,6 +505,8 @@ pub struct Stats {
     pub bus_errors: u64,
     /// Log lines dropped because the writer fell behind.
     pub log_dropped: u64,
+    /// Log lines lost to write errors (full disk, `/dev/full`, a stalled FIFO).
+    pub log_errors: u64,
     /// Mode of the last frame sent.
     pub safety_state: Mode,
     /// Whether the received state is currently valid.
@@ -511,6 +518,9 @@ pub struct Stats {
 }
 
 struct Running {
+    /// The state this run's threads use: the stop request must go to this
+    /// one, not to whatever `Bridge::shared` holds by the time `stop` runs.
+    shared: Arc<Shared>,
     tx: JoinHandle<()>,
     rx: JoinHandle<()>,
     rx_stop: Arc<AtomicBool>,
@@ -524,6 +534,9 @@ pub struct Bridge {
     shared: Mutex<Arc<Shared>>,
     run: Mutex<Option<Running>>,
     pty_path: Mutex<Option<String>>,
+    /// Serialises `start` and `stop` as a whole (held across the joins), so a
+    /// start never overlaps a stop that is still sending its safe frames.
+    lifecycle: Mutex<()>,
 }
 
 impl Bridge {
@@ -537,6 +550,7 @@ impl Bridge {
             shared: Mutex::new(shared),
             run: Mutex::new(None),
             pty_path: Mutex::new(None),
+            lifecycle: Mutex::new(()),
         })
     }
 
@@ -551,6 +565,7 @@ impl Bridge {
 
     /// Open the transport and start the threads.
     pub fn start(&self) -> Result<()> {
+        let _life = lock(&self.lifecycle);
         let mut run = lock(&self.run);
         if run.is_some() {
             return Err(Error::State("bridge is already running".into()));
@@ -576,7 +591,12 @@ impl Bridge {
         *lock(&self.pty_path) = opened.pty_path.clone();
         let (log_tx, log_writer) = match &self.cfg.log_path {
             Some(p) => {
-                let (s, w) = candump::start(p, self.spec.log_name(), shared.log_dropped.clone())?;
+                let (s, w) = candump::start(
+                    p,
+                    self.spec.log_name(),
+                    shared.log_dropped.clone(),
+                    shared.log_errors.clone(),
+                )?;
                 (Some(s), Some(w))
             }
             None => (None, None),
@@ -644,6 +664,7 @@ impl Bridge {
             }
         };
         *run = Some(Running {
+            shared,
             tx,
             rx,
             rx_stop,
@@ -655,10 +676,11 @@ impl Bridge {
     /// Send the safe frames, stop the threads, close the transport. Does
     /// nothing if not running.
     pub fn stop(&self) -> Result<()> {
+        let _life = lock(&self.lifecycle);
         let Some(r) = lock(&self.run).take() else {
             return Ok(());
         };
-        self.shared().request_stop();
+        r.shared.request_stop();
         let tx_ok = r.tx.join().is_ok();
         r.rx_stop.store(true, Ordering::Release);
         let rx_ok = r.rx.join().is_ok();
@@ -726,6 +748,7 @@ impl Bridge {
             rx_transport_errors: rx.rx_transport_errors,
             bus_errors: rx.bus_errors,
             log_dropped: sh.log_dropped.load(Ordering::Relaxed),
+            log_errors: sh.log_errors.load(Ordering::Relaxed),
             safety_state: mode,
             state_valid,
             last_tx_error,
@@ -969,6 +992,31 @@ mod tests {
         assert_eq!(d[34].1, Mode::Active as u8);
         assert_eq!(d[34].2, [10.0; 4]);
         assert_eq!(d[37].1, Mode::Safe as u8);
+    }
+
+    #[test]
+    fn reset_without_fault_keeps_the_output_and_the_rate_limit() {
+        let (frames, ..) = run(
+            |_| 0,
+            |n, sh, c| {
+                if n < 30 {
+                    sh.set_command([100.0; 4], n as u64 + 1, c.now_ns())
+                        .unwrap();
+                }
+                if n == 15 {
+                    sh.request_reset(c.now_ns());
+                }
+                if n == 30 {
+                    sh.request_stop();
+                }
+            },
+        );
+        let d: Vec<_> = frames.iter().map(|(_, f)| decode(f)).collect();
+        for (k, dk) in d.iter().enumerate().take(31).skip(1) {
+            assert_eq!(dk.1, Mode::Active as u8, "tick {k}: {dk:?}");
+            let want = (10.0 * k as f64).min(100.0);
+            assert_eq!(dk.2, [want; 4], "tick {k}");
+        }
     }
 
     #[test]

@@ -8,7 +8,7 @@ use crate::error::Error;
 use crate::safety::SafetyConfig;
 use pyo3::exceptions::PyRuntimeError;
 use pyo3::prelude::*;
-use pyo3::types::{PyBytes, PyDict, PyString};
+use pyo3::types::{PyBool, PyBytes, PyDict, PyString};
 use std::path::PathBuf;
 
 /// The one mapping from error kinds to Python exception classes.
@@ -39,6 +39,44 @@ fn ms_to_ns(name: &str, ms: f64) -> Result<u64, Error> {
     Ok((ms * 1e6).round() as u64)
 }
 
+/// `repr(obj)` for error messages.
+fn repr(obj: &Bound<'_, PyAny>) -> String {
+    obj.repr()
+        .map_or_else(|_| "?".to_string(), |r| r.to_string())
+}
+
+/// Python's `bool` and NumPy's `bool_`: integers to Python, never a torque,
+/// a sequence number or a setting.
+fn is_bool(obj: &Bound<'_, PyAny>) -> bool {
+    obj.is_instance_of::<PyBool>()
+        || obj
+            .get_type()
+            .name()
+            .is_ok_and(|n| n == "bool" || n == "bool_")
+}
+
+/// Whether `obj` is an instance of the ABC `module.name` (false if the
+/// lookup fails).
+fn is_abc(obj: &Bound<'_, PyAny>, module: &str, name: &str) -> bool {
+    obj.py()
+        .import(module)
+        .and_then(|m| m.getattr(name))
+        .and_then(|abc| obj.is_instance(&abc))
+        .unwrap_or(false)
+}
+
+/// One real number: refuses bools and complex numbers (whose `float()`
+/// would drop the imaginary part).
+fn real(item: &Bound<'_, PyAny>) -> Option<f64> {
+    if is_bool(item) {
+        return None;
+    }
+    if is_abc(item, "numbers", "Complex") && !is_abc(item, "numbers", "Real") {
+        return None;
+    }
+    item.extract().ok()
+}
+
 fn four_floats(
     obj: &Bound<'_, PyAny>,
     what: &str,
@@ -47,6 +85,14 @@ fn four_floats(
     if obj.is_instance_of::<PyString>() || obj.is_instance_of::<PyBytes>() {
         return Err(kind(format!(
             "{what} must be 4 numbers (FL, FR, RL, RR), not a string"
+        )));
+    }
+    if is_abc(obj, "collections.abc", "Mapping") || is_abc(obj, "collections.abc", "Set") {
+        return Err(kind(format!(
+            "{what} must be an ordered sequence of 4 numbers (FL, FR, RL, RR), not a {}",
+            obj.get_type()
+                .name()
+                .map_or_else(|_| "mapping or set".to_string(), |n| n.to_string())
         )));
     }
     let iter = obj.try_iter().map_err(|_| {
@@ -58,9 +104,12 @@ fn four_floats(
     let mut n = 0usize;
     for item in iter {
         let item = item.map_err(|e| kind(format!("{what}: {e}")))?;
-        let v: f64 = item
-            .extract()
-            .map_err(|_| kind(format!("{what}[{n}] is not a number")))?;
+        let v = real(&item).ok_or_else(|| {
+            kind(format!(
+                "{what}[{n}] = {} is not a real number",
+                repr(&item)
+            ))
+        })?;
         if let Some(slot) = out.get_mut(n) {
             *slot = v;
         }
@@ -82,6 +131,42 @@ fn four_floats(
     Ok(out)
 }
 
+/// A numeric constructor argument (`None`: the default).
+fn arg_f64(name: &str, obj: Option<&Bound<'_, PyAny>>, default: f64) -> Result<f64, Error> {
+    match obj {
+        None => Ok(default),
+        Some(o) if o.is_none() => Ok(default),
+        Some(o) => real(o)
+            .ok_or_else(|| Error::Config(format!("{name} must be a real number, got {}", repr(o)))),
+    }
+}
+
+/// An integer constructor argument in `lo..=hi` (`None`: the default).
+fn arg_int(
+    name: &str,
+    obj: Option<&Bound<'_, PyAny>>,
+    default: i64,
+    lo: i64,
+    hi: i64,
+) -> Result<i64, Error> {
+    let o = match obj {
+        Some(o) if !o.is_none() => o,
+        _ => return Ok(default),
+    };
+    let v = if is_bool(o) {
+        None
+    } else {
+        o.extract::<i64>().ok()
+    };
+    match v {
+        Some(v) if (lo..=hi).contains(&v) => Ok(v),
+        _ => Err(Error::Config(format!(
+            "{name} must be an integer in {lo}..={hi}, got {}",
+            repr(o)
+        ))),
+    }
+}
+
 /// A CAN bridge: frames the latest wheel-torque command every tick.
 #[pyclass(name = "Bridge", module = "can_bridge", frozen)]
 struct PyBridge {
@@ -93,63 +178,100 @@ impl PyBridge {
     #[new]
     #[pyo3(signature = (
         channel,
-        period_ms = 50.0,
+        period_ms = None,
         *,
         max_torque_nm = None,
-        max_rate_nm_per_tick = 25.0,
-        hold_after_ms = 150.0,
-        safe_after_ms = 500.0,
-        fault_after_ms = 2000.0,
-        state_timeout_ms = 250.0,
+        max_rate_nm_per_tick = None,
+        hold_after_ms = None,
+        safe_after_ms = None,
+        fault_after_ms = None,
+        state_timeout_ms = None,
         log_path = None,
-        bitrate = 500_000,
-        stop_safe_frames = 3,
-        rx_max_counter_delta = 2,
-        trace_capacity = 0,
+        bitrate = None,
+        stop_safe_frames = None,
+        rx_max_counter_delta = None,
+        trace_capacity = None,
         rt_priority = None,
     ))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
-        channel: &str,
-        period_ms: f64,
+        channel: &Bound<'_, PyAny>,
+        period_ms: Option<&Bound<'_, PyAny>>,
         max_torque_nm: Option<&Bound<'_, PyAny>>,
-        max_rate_nm_per_tick: f64,
-        hold_after_ms: f64,
-        safe_after_ms: f64,
-        fault_after_ms: f64,
-        state_timeout_ms: f64,
-        log_path: Option<PathBuf>,
-        bitrate: u32,
-        stop_safe_frames: u32,
-        rx_max_counter_delta: u8,
-        trace_capacity: usize,
-        rt_priority: Option<i32>,
+        max_rate_nm_per_tick: Option<&Bound<'_, PyAny>>,
+        hold_after_ms: Option<&Bound<'_, PyAny>>,
+        safe_after_ms: Option<&Bound<'_, PyAny>>,
+        fault_after_ms: Option<&Bound<'_, PyAny>>,
+        state_timeout_ms: Option<&Bound<'_, PyAny>>,
+        log_path: Option<&Bound<'_, PyAny>>,
+        bitrate: Option<&Bound<'_, PyAny>>,
+        stop_safe_frames: Option<&Bound<'_, PyAny>>,
+        rx_max_counter_delta: Option<&Bound<'_, PyAny>>,
+        trace_capacity: Option<&Bound<'_, PyAny>>,
+        rt_priority: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
         let build = || -> Result<Bridge, Error> {
+            let channel: String = channel.extract().map_err(|_| {
+                Error::Config(format!("channel must be a str, got {}", repr(channel)))
+            })?;
             let max_torque = match max_torque_nm {
-                None => SafetyConfig::default().max_torque_nm,
-                Some(obj) => match obj.extract::<f64>() {
-                    Ok(v) => [v; 4],
-                    Err(_) => four_floats(obj, "max_torque_nm", Error::Config)?,
+                Some(obj) if !obj.is_none() => match real(obj) {
+                    Some(v) => [v; 4],
+                    None => four_floats(obj, "max_torque_nm", Error::Config)?,
                 },
+                _ => SafetyConfig::default().max_torque_nm,
             };
-            let mut cfg = BridgeConfig::new(channel);
-            cfg.period_ns = ms_to_ns("period_ms", period_ms)?;
+            let defaults = SafetyConfig::default();
+            let ms = |name: &str, obj, default_ns: u64| {
+                ms_to_ns(name, arg_f64(name, obj, default_ns as f64 / 1e6)?)
+            };
+            let mut cfg = BridgeConfig::new(&channel);
+            cfg.period_ns = ms("period_ms", period_ms, cfg.period_ns)?;
             cfg.safety = SafetyConfig {
                 max_torque_nm: max_torque,
-                max_delta_nm_per_tick: max_rate_nm_per_tick,
-                hold_after_ns: ms_to_ns("hold_after_ms", hold_after_ms)?,
-                safe_after_ns: ms_to_ns("safe_after_ms", safe_after_ms)?,
-                fault_after_ns: ms_to_ns("fault_after_ms", fault_after_ms)?,
+                max_delta_nm_per_tick: arg_f64(
+                    "max_rate_nm_per_tick",
+                    max_rate_nm_per_tick,
+                    defaults.max_delta_nm_per_tick,
+                )?,
+                hold_after_ns: ms("hold_after_ms", hold_after_ms, defaults.hold_after_ns)?,
+                safe_after_ns: ms("safe_after_ms", safe_after_ms, defaults.safe_after_ns)?,
+                fault_after_ns: ms("fault_after_ms", fault_after_ms, defaults.fault_after_ns)?,
             };
-            cfg.state_timeout_ns = ms_to_ns("state_timeout_ms", state_timeout_ms)?;
-            cfg.log_path = log_path;
-            cfg.bitrate = bitrate;
-            cfg.stop_safe_frames = stop_safe_frames;
-            cfg.rx_max_counter_delta = rx_max_counter_delta;
-            cfg.trace_capacity = trace_capacity;
-            cfg.rt_priority = rt_priority;
+            cfg.state_timeout_ns = ms("state_timeout_ms", state_timeout_ms, cfg.state_timeout_ns)?;
+            cfg.log_path = match log_path {
+                Some(o) if !o.is_none() => Some(o.extract::<PathBuf>().map_err(|_| {
+                    Error::Config(format!(
+                        "log_path must be a str or os.PathLike, got {}",
+                        repr(o)
+                    ))
+                })?),
+                _ => None,
+            };
+            let int = |name: &str, obj, default: i64, lo: i64, hi: i64| {
+                arg_int(name, obj, default, lo, hi)
+            };
+            cfg.bitrate = int("bitrate", bitrate, cfg.bitrate.into(), 1, u32::MAX.into())? as u32;
+            cfg.stop_safe_frames = int(
+                "stop_safe_frames",
+                stop_safe_frames,
+                cfg.stop_safe_frames.into(),
+                0,
+                100,
+            )? as u32;
+            cfg.rx_max_counter_delta = int(
+                "rx_max_counter_delta",
+                rx_max_counter_delta,
+                cfg.rx_max_counter_delta.into(),
+                1,
+                14,
+            )? as u8;
+            cfg.trace_capacity = int("trace_capacity", trace_capacity, 0, 0, 10_000_000)? as usize;
+            cfg.rt_priority = match rt_priority {
+                Some(o) if !o.is_none() => Some(int("rt_priority", Some(o), 0, 1, 99)? as i32),
+                _ => None,
+            };
             Bridge::new(cfg)
         };
         build()
@@ -191,13 +313,17 @@ impl PyBridge {
         seq: &Bound<'_, PyAny>,
     ) -> PyResult<()> {
         let t = four_floats(torques, "torques", Error::Command).map_err(|e| err(py, e))?;
-        let seq: u64 = seq.extract().map_err(|_| {
+        let value = if is_bool(seq) {
+            None
+        } else {
+            seq.extract::<u64>().ok()
+        };
+        let seq = value.ok_or_else(|| {
             err(
                 py,
                 Error::Command(format!(
                     "seq must be an integer in 0..2**64, got {}",
-                    seq.repr()
-                        .map_or_else(|_| "?".to_string(), |r| r.to_string())
+                    repr(seq)
                 )),
             )
         })?;
@@ -252,6 +378,7 @@ impl PyBridge {
         d.set_item("rx_transport_errors", s.rx_transport_errors)?;
         d.set_item("bus_errors", s.bus_errors)?;
         d.set_item("log_dropped", s.log_dropped)?;
+        d.set_item("log_errors", s.log_errors)?;
         d.set_item("safety_state", s.safety_state.name())?;
         d.set_item("state_valid", s.state_valid)?;
         d.set_item("last_tx_error", s.last_tx_error)?;

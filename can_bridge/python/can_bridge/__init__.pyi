@@ -54,6 +54,7 @@ class Stats(TypedDict):
     rx_transport_errors: int
     bus_errors: int
     log_dropped: int
+    log_errors: int
     safety_state: SafetyState
     state_valid: bool
     last_tx_error: str | None

@@ -17,13 +17,17 @@ use std::time::Duration;
 /// Longest wait for room in the output buffer per frame, ms.
 const WRITE_BUDGET_MS: i32 = 5;
 
+/// Longest wait at close for the pty peer to read what was written (the
+/// safe frames of `stop`): closing the master discards unread output.
+const DRAIN_BUDGET: Duration = Duration::from_millis(200);
+
 struct Port {
     fd: Fd,
     /// Serialises writes of the two threads so lines never interleave.
     write_lock: Mutex<()>,
     /// For a pty: our own handle on the slave, so the master never sees a
-    /// hang-up while no peer is connected.
-    _slave_keeper: Option<Fd>,
+    /// hang-up while no peer is connected; also how we see unread output.
+    slave_keeper: Option<Fd>,
     what: String,
 }
 
@@ -31,6 +35,38 @@ impl Port {
     fn write_line(&self, bytes: &[u8], budget_ms: i32) -> io::Result<()> {
         let _g = self.write_lock.lock().unwrap_or_else(|e| e.into_inner());
         self.fd.write_all_within(bytes, budget_ms)
+    }
+
+    /// Bytes written to a pty master that the peer has not read yet (the
+    /// slave's input queue, `FIONREAD` on our slave handle). `TIOCOUTQ` on
+    /// the master does not work for this: Linux reports 0 there.
+    fn unread_by_peer(&self) -> Option<usize> {
+        let keeper = self.slave_keeper.as_ref()?;
+        let mut n: libc::c_int = 0;
+        // SAFETY: FIONREAD writes one c_int to a valid pointer.
+        let rc = unsafe { libc::ioctl(keeper.raw(), libc::FIONREAD, &mut n) };
+        (rc == 0).then_some(n.max(0) as usize)
+    }
+
+    /// Wait (at most `budget`) until the peer has read everything written to
+    /// the pty. Requires two empty readings 2 ms apart, so bytes still on
+    /// their way from the master to the slave's queue are not missed.
+    fn drain(&self, budget: Duration) {
+        let end = std::time::Instant::now() + budget;
+        let mut empty = 0;
+        while std::time::Instant::now() < end {
+            match self.unread_by_peer() {
+                None => return,
+                Some(0) => {
+                    empty += 1;
+                    if empty >= 2 {
+                        return;
+                    }
+                }
+                Some(_) => empty = 0,
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
     }
 }
 
@@ -62,8 +98,18 @@ impl Sink for SlcanSink {
     }
 
     fn close(&mut self) {
-        if let Role::Host = self.role {
-            let _ = self.port.write_line(b"C\r", 20);
+        match &self.role {
+            Role::Host => {
+                let _ = self.port.write_line(b"C\r", 20);
+            }
+            // Closing the master discards what the peer has not read yet:
+            // give a slow reader a bounded time to take the last (safe) frames.
+            // A peer that closed the channel (`C`) reads nothing more.
+            Role::Device { open } => {
+                if open.load(Ordering::Acquire) {
+                    self.port.drain(DRAIN_BUDGET);
+                }
+            }
         }
     }
 }
@@ -197,7 +243,7 @@ pub fn open_pty() -> Result<Opened> {
     let port = Arc::new(Port {
         fd: m,
         write_lock: Mutex::new(()),
-        _slave_keeper: Some(keeper),
+        slave_keeper: Some(keeper),
         what: format!("slcan-pty {path}"),
     });
     let role = Role::Device {
@@ -245,7 +291,7 @@ pub fn open_serial(path: &str, baud: u32, bitrate: u32) -> Result<Opened> {
     let port = Arc::new(Port {
         fd,
         write_lock: Mutex::new(()),
-        _slave_keeper: None,
+        slave_keeper: None,
         what: format!("slcan {path}"),
     });
     let init = format!("C\rS{code}\rO\r");
@@ -327,6 +373,81 @@ mod tests {
             let _ = source.recv(10).unwrap();
         }
         assert_eq!(sink.send(&f).unwrap(), Sent::NotOpen);
+    }
+
+    #[test]
+    fn pty_close_waits_for_a_slow_peer_to_read_the_last_frames() {
+        let Opened {
+            mut sink,
+            mut source,
+            pty_path,
+        } = open_pty().unwrap();
+        let peer = open_slave(&pty_path.unwrap());
+        peer.write(b"O\r").unwrap();
+        for _ in 0..5 {
+            let _ = source.recv(10).unwrap();
+        }
+        assert_eq!(read_until(&peer, 1), b"\r");
+        let f = CanFrame::new(0x101, false, &[0; 8]).unwrap();
+        for _ in 0..3 {
+            assert_eq!(sink.send(&f).unwrap(), Sent::Yes);
+        }
+        // The peer reads only every 120 ms: its next read is after close().
+        let reader = std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_millis(120));
+            let mut out = vec![];
+            let mut b = [0u8; 256];
+            while let Ok(n) = peer.read(&mut b) {
+                if n == 0 {
+                    break;
+                }
+                out.extend_from_slice(&b[..n]);
+            }
+            out
+        });
+        let t0 = std::time::Instant::now();
+        sink.close();
+        drop(sink);
+        drop(source); // the master closes here
+        let waited = t0.elapsed();
+        let got = reader.join().unwrap();
+        assert_eq!(
+            got,
+            b"t1018"
+                .iter()
+                .chain(&[b'0'; 16])
+                .chain(b"\r")
+                .copied()
+                .collect::<Vec<u8>>()
+                .repeat(3),
+            "waited {waited:?}"
+        );
+        assert!(waited < Duration::from_millis(400), "waited {waited:?}");
+    }
+
+    #[test]
+    fn pty_close_wait_is_bounded_without_a_reader() {
+        let Opened {
+            mut sink,
+            mut source,
+            pty_path,
+        } = open_pty().unwrap();
+        let peer = open_slave(&pty_path.unwrap());
+        peer.write(b"O\r").unwrap();
+        for _ in 0..5 {
+            let _ = source.recv(10).unwrap();
+        }
+        let f = CanFrame::new(0x101, false, &[0; 8]).unwrap();
+        assert_eq!(sink.send(&f).unwrap(), Sent::Yes);
+        // Nobody reads: close gives up after the bounded wait.
+        let t0 = std::time::Instant::now();
+        sink.close();
+        let waited = t0.elapsed();
+        assert!(
+            waited >= Duration::from_millis(150) && waited < Duration::from_millis(400),
+            "waited {waited:?}"
+        );
+        drop(peer);
     }
 
     #[test]

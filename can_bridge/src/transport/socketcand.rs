@@ -11,21 +11,171 @@ use std::time::{Duration, Instant};
 
 const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(3);
 
+/// Longest wait for room in the socket's send buffer per frame, ms.
+const SEND_BUDGET_MS: i32 = 5;
+
+/// Longest wait at close to finish a message cut by a full send buffer, ms.
+const CLOSE_BUDGET_MS: i32 = 100;
+
+/// A byte sink that never blocks: `write_nb` writes what fits now (or fails
+/// with `WouldBlock`), `wait_writable` waits up to `ms` for room.
+pub trait NbWrite {
+    /// Write what fits without blocking.
+    fn write_nb(&mut self, buf: &[u8]) -> io::Result<usize>;
+    /// Wait up to `ms` for room.
+    fn wait_writable(&mut self, ms: i32) -> io::Result<()>;
+}
+
+impl NbWrite for TcpStream {
+    fn write_nb(&mut self, buf: &[u8]) -> io::Result<usize> {
+        use std::os::fd::AsRawFd;
+        loop {
+            // SAFETY: buf is valid for buf.len() bytes; MSG_DONTWAIT makes this
+            // one call non-blocking without touching the descriptor's flags
+            // (shared with the receive half).
+            let rc = unsafe {
+                libc::send(
+                    self.as_raw_fd(),
+                    buf.as_ptr().cast(),
+                    buf.len(),
+                    libc::MSG_DONTWAIT | libc::MSG_NOSIGNAL,
+                )
+            };
+            if rc >= 0 {
+                return Ok(rc as usize);
+            }
+            let e = io::Error::last_os_error();
+            if e.kind() != io::ErrorKind::Interrupted {
+                return Err(e);
+            }
+        }
+    }
+
+    fn wait_writable(&mut self, ms: i32) -> io::Result<()> {
+        use std::os::fd::AsRawFd;
+        let mut p = libc::pollfd {
+            fd: self.as_raw_fd(),
+            events: libc::POLLOUT,
+            revents: 0,
+        };
+        // SAFETY: one valid pollfd.
+        let rc = unsafe { libc::poll(&mut p, 1, ms) };
+        if rc < 0 {
+            let e = io::Error::last_os_error();
+            if e.kind() != io::ErrorKind::Interrupted {
+                return Err(e);
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Sends whole messages or nothing: a message the socket took only in part
+/// keeps its unsent tail here, and the tail goes out before anything else. A
+/// frame that cannot start (buffer full, or an earlier tail still pending)
+/// is dropped whole and reported as an error, never half-written.
+#[derive(Debug, Default)]
+pub struct MessageWriter {
+    tail: Vec<u8>,
+}
+
+fn would_block(msg: &str) -> io::Error {
+    io::Error::new(io::ErrorKind::WouldBlock, msg.to_string())
+}
+
+impl MessageWriter {
+    /// Bytes of a started message still to be written.
+    pub fn pending(&self) -> usize {
+        self.tail.len()
+    }
+
+    /// Write as much of the pending tail as fits; `Ok(true)` once it is empty.
+    fn push_tail(&mut self, w: &mut dyn NbWrite) -> io::Result<bool> {
+        while !self.tail.is_empty() {
+            match w.write_nb(&self.tail) {
+                Ok(0) => return Err(io::Error::new(io::ErrorKind::WriteZero, "send returned 0")),
+                Ok(n) => {
+                    self.tail.drain(..n.min(self.tail.len()));
+                }
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => return Ok(false),
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(true)
+    }
+
+    /// Finish the pending tail, waiting at most `budget_ms` in total.
+    pub fn flush(&mut self, w: &mut dyn NbWrite, budget_ms: i32) -> io::Result<bool> {
+        let end = std::time::Instant::now() + Duration::from_millis(budget_ms.max(0) as u64);
+        loop {
+            if self.push_tail(w)? {
+                return Ok(true);
+            }
+            let left = end.saturating_duration_since(std::time::Instant::now());
+            if left.is_zero() {
+                return Ok(false);
+            }
+            w.wait_writable(left.as_millis().clamp(1, i32::MAX as u128) as i32)?;
+        }
+    }
+
+    /// Send one whole message, waiting at most about `budget_ms` for room.
+    /// `Err(WouldBlock)`: the message was dropped, nothing of it was written.
+    pub fn send(&mut self, w: &mut dyn NbWrite, msg: &[u8], budget_ms: i32) -> io::Result<()> {
+        let mut waited = false;
+        while !self.push_tail(w)? {
+            if waited {
+                return Err(would_block(
+                    "send buffer full (server not reading), previous message unfinished; frame dropped",
+                ));
+            }
+            w.wait_writable(budget_ms)?;
+            waited = true;
+        }
+        let mut off = 0usize;
+        while off < msg.len() {
+            match w.write_nb(msg.get(off..).unwrap_or(&[])) {
+                Ok(0) => return Err(io::Error::new(io::ErrorKind::WriteZero, "send returned 0")),
+                Ok(n) => off += n,
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                    if off == 0 && !waited {
+                        w.wait_writable(budget_ms)?;
+                        waited = true;
+                    } else if off == 0 {
+                        return Err(would_block(
+                            "send buffer full (server not reading); frame dropped",
+                        ));
+                    } else {
+                        // Started: the message is committed; its tail goes
+                        // out before the next one.
+                        self.tail.extend_from_slice(msg.get(off..).unwrap_or(&[]));
+                        return Ok(());
+                    }
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(())
+    }
+}
+
 struct TcpSink {
     stream: TcpStream,
+    writer: MessageWriter,
     what: String,
 }
 
 impl Sink for TcpSink {
     fn send(&mut self, frame: &CanFrame) -> Result<Sent> {
         let msg = encode_send(frame);
-        self.stream
-            .write_all(msg.as_bytes())
+        self.writer
+            .send(&mut self.stream, msg.as_bytes(), SEND_BUDGET_MS)
             .map_err(|e| Error::io(&format!("{} send", self.what), &e))?;
         Ok(Sent::Yes)
     }
 
     fn close(&mut self) {
+        let _ = self.writer.flush(&mut self.stream, CLOSE_BUDGET_MS);
         let _ = self.stream.shutdown(std::net::Shutdown::Write);
     }
 }
@@ -204,9 +354,6 @@ pub fn open(host: &str, port: u16, bus: &str) -> Result<Opened> {
             }
         }
     }
-    stream
-        .set_write_timeout(Some(Duration::from_millis(20)))
-        .map_err(|e| Error::io(&what, &e))?;
     let rx = stream
         .try_clone()
         .map_err(|e| Error::io(&format!("{what}: clone socket"), &e))?;
@@ -217,6 +364,7 @@ pub fn open(host: &str, port: u16, bus: &str) -> Result<Opened> {
     Ok(Opened {
         sink: Box::new(TcpSink {
             stream,
+            writer: MessageWriter::default(),
             what: what.clone(),
         }),
         source: Box::new(TcpSource {
@@ -283,6 +431,137 @@ mod tests {
             .unwrap();
         let transcript = server.join().unwrap();
         assert_eq!(transcript, "< open can0 >< rawmode >< send 101 1 FF >");
+    }
+
+    /// Takes at most `room` bytes; `wait_writable` frees a scripted amount.
+    struct Trickle {
+        out: Vec<u8>,
+        room: usize,
+        refills: Vec<usize>,
+        k: usize,
+    }
+
+    impl NbWrite for Trickle {
+        fn write_nb(&mut self, buf: &[u8]) -> io::Result<usize> {
+            if self.room == 0 {
+                return Err(io::ErrorKind::WouldBlock.into());
+            }
+            let n = buf.len().min(self.room);
+            self.out.extend_from_slice(&buf[..n]);
+            self.room -= n;
+            Ok(n)
+        }
+        fn wait_writable(&mut self, _ms: i32) -> io::Result<()> {
+            self.room += self.refills[self.k % self.refills.len()];
+            self.k += 1;
+            Ok(())
+        }
+    }
+
+    fn msg(i: usize) -> Vec<u8> {
+        let data: Vec<u8> = (0..(i % 9) as u8).collect();
+        encode_send(&CanFrame::new(0x101 + (i as u32 % 3), false, &data).unwrap()).into_bytes()
+    }
+
+    #[test]
+    fn message_writer_never_cuts_a_message() {
+        for refills in [
+            vec![0, 7, 0, 0, 13],
+            vec![5],
+            vec![40, 0],
+            vec![0, 0, 0, 100, 3],
+        ] {
+            let mut w = Trickle {
+                out: vec![],
+                room: 10,
+                refills,
+                k: 0,
+            };
+            let mut mw = MessageWriter::default();
+            let mut sent = vec![];
+            let mut dropped = 0;
+            for i in 0..500 {
+                let m = msg(i);
+                match mw.send(&mut w, &m, 5) {
+                    Ok(()) => sent.extend_from_slice(&m),
+                    Err(e) => {
+                        assert_eq!(e.kind(), io::ErrorKind::WouldBlock);
+                        dropped += 1;
+                    }
+                }
+                // Whatever is on the wire is a prefix of the accepted messages.
+                assert!(sent.starts_with(&w.out));
+            }
+            w.room = usize::MAX;
+            assert!(mw.flush(&mut w, 5).unwrap());
+            assert_eq!(w.out, sent);
+            assert!(dropped > 0);
+        }
+    }
+
+    #[test]
+    fn full_send_buffer_drops_whole_frames_never_cuts_one() {
+        use std::os::fd::AsRawFd;
+        fn set_buf(fd: i32, opt: i32, n: i32) {
+            let rc = unsafe {
+                libc::setsockopt(
+                    fd,
+                    libc::SOL_SOCKET,
+                    opt,
+                    (&n as *const i32).cast(),
+                    std::mem::size_of::<i32>() as libc::socklen_t,
+                )
+            };
+            assert_eq!(rc, 0);
+        }
+        let l = TcpListener::bind("127.0.0.1:0").unwrap();
+        set_buf(l.as_raw_fd(), libc::SO_RCVBUF, 2048);
+        let client = TcpStream::connect(l.local_addr().unwrap()).unwrap();
+        set_buf(client.as_raw_fd(), libc::SO_SNDBUF, 4096);
+        client.set_nodelay(true).unwrap();
+        let (mut server, _) = l.accept().unwrap();
+        let mut sink = TcpSink {
+            stream: client,
+            writer: MessageWriter::default(),
+            what: "test".into(),
+        };
+        // The server does not read: the buffers fill, sends start failing.
+        let (mut ok, mut failed) = (0usize, 0usize);
+        let mut i = 0usize;
+        while failed < 40 && i < 20_000 {
+            let data: Vec<u8> = (0..(i % 9) as u8).collect();
+            match sink.send(&CanFrame::new(0x101, false, &data).unwrap()) {
+                Ok(Sent::Yes) => ok += 1,
+                Ok(Sent::NotOpen) => unreachable!(),
+                Err(e) => {
+                    assert!(e.to_string().contains("dropped"), "{e}");
+                    failed += 1;
+                }
+            }
+            i += 1;
+        }
+        assert!(failed > 0, "the send buffer never filled");
+        let reader = std::thread::spawn(move || {
+            let mut got = vec![];
+            server.read_to_end(&mut got).unwrap();
+            got
+        });
+        sink.close();
+        drop(sink);
+        let got = String::from_utf8(reader.join().unwrap()).unwrap();
+        // Every message is whole, and every accepted frame arrived.
+        let mut n = 0;
+        for part in got.split_inclusive('>') {
+            let body = part
+                .strip_prefix("< send 101 ")
+                .and_then(|p| p.strip_suffix(" >"))
+                .unwrap_or_else(|| panic!("cut or glued message {part:?}"));
+            let mut it = body.split(' ');
+            let len: usize = it.next().unwrap().parse().unwrap();
+            assert_eq!(it.count(), len, "{part:?}");
+            n += 1;
+        }
+        assert_eq!(n, ok);
     }
 
     #[test]
