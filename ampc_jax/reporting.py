@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -19,6 +20,66 @@ from typing import Any
 import numpy as np
 
 __all__ = ["add_cli_commands", "cmd_demo", "cmd_simulate", "write_metrics", "write_timeseries"]
+
+
+def _fail(msg: str) -> int:
+    print(f"ampc: error: {msg}", file=sys.stderr)
+    return 2
+
+
+def _arg_type(check: Any, kind: type = float) -> Any:
+    """An argparse ``type``: parse with ``kind``, then ``check`` (ValueError -> usage error)."""
+
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"expected {'an integer' if kind is int else 'a number'}, got {text!r}"
+            ) from None
+        try:
+            check(value)
+        except ValueError as exc:
+            # the check's message starts with the field name; argparse names the option
+            raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[-1]) from None
+        return value
+
+    parse.__name__ = kind.__name__  # argparse's "invalid <name> value" fallback
+    return parse
+
+
+def _duration(value: float) -> None:
+    from .simulation import check_duration
+
+    check_duration(value)
+
+
+def _mu(value: float) -> None:
+    from .simulation import check_mu
+
+    check_mu(value)
+
+
+def _positive_finite(value: float) -> None:
+    if not (np.isfinite(value) and value > 0):
+        raise ValueError(f"value: expected a positive finite number, got {value!r}")
+
+
+def _at_least_one(value: int) -> None:
+    if value < 1:
+        raise ValueError(f"value: expected an integer >= 1, got {value!r}")
+
+
+def _output_dir(text: str) -> str | None:
+    """Create the output directory ``text``; an error message if that fails (else None)."""
+    out = Path(text)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return f"--out {text}: cannot create the output directory ({exc.strerror or exc})"
+    if not os.access(out, os.W_OK | os.X_OK):
+        return f"--out {text}: the output directory is not writable"
+    return None
 
 
 def _enable_x64(float32: bool = False) -> None:
@@ -108,7 +169,11 @@ def write_metrics(metrics: dict[str, Any], path: str | Path) -> Path:
     return path
 
 
-def _figures(results: list[Any], out: Path, stem: str = "") -> list[Path]:
+def _figures(
+    results: list[Any], out: Path, stem: str = "", skipped: list[str] | None = None
+) -> list[Path]:
+    """Write the figures of ``results`` (the first is the main run); notes on figures
+    left out are appended to ``skipped``."""
     from . import figures
 
     main = results[0]
@@ -117,7 +182,10 @@ def _figures(results: list[Any], out: Path, stem: str = "") -> list[Path]:
         figures.save(figures.wheel_torques(main), out / f"{stem}wheel_torques.png"),
     ]
     if main.config.formulation != "none":
-        paths.append(figures.save(figures.convergence(main), out / f"{stem}convergence.png"))
+        if np.isfinite(np.asarray(main.log.e_sub, float)).any():
+            paths.append(figures.save(figures.convergence(main), out / f"{stem}convergence.png"))
+        elif skipped is not None:  # no shadow: no e_sub for its (log-scaled) panel
+            skipped.append(f"{stem}convergence.png (no e_sub logged: --no-shadow)")
     if len(results) > 1:
         paths.append(
             figures.save(figures.yaw_error_comparison(results), out / f"{stem}yaw_error.png")
@@ -164,6 +232,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         )
         return 2
     spec = SCENARIOS[args.scenario]
+    # argparse checked the values; SimConfig and simulate() check them again for the API
     try:
         cfg = config_for(
             spec,
@@ -183,8 +252,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         if args.set:
             cfg = with_settings(cfg, **_parse_settings(args.set, cfg.settings))
     except ValueError as exc:
-        print(f"ampc: error: {exc}", file=sys.stderr)
-        return 2
+        return _fail(str(exc))
+    problem = _output_dir(args.out)
+    if problem:
+        return _fail(problem)
     out = Path(args.out)
     timing = cfg.formulation == "local_explicit" and not args.no_timing and cfg.shadow
     bar = _bar(4, args.quiet)
@@ -205,13 +276,16 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     write_metrics(m, out / "metrics.json")
     bar.update(1)
     bar.set_description("figures")
-    figs = _figures([res], out)
+    skipped: list[str] = []
+    figs = _figures([res], out, skipped=skipped)
     bar.update(1)
     bar.close()
     _summary(m)
     print(f"wrote {out / 'timeseries.csv'}, {out / 'metrics.json'}")
     for p in figs:
         print(f"figure {p}")
+    for note in skipped:
+        print(f"figure {note} skipped")
     return 0
 
 
@@ -238,11 +312,28 @@ def _parse_settings(items: list[str], settings: Any) -> dict[str, Any]:
                 f"--set {item}: expected FIELD=VALUE with FIELD one of {list(settings._fields)}"
             )
         kind = type(getattr(settings, key))
-        try:
-            out[key] = (value.lower() in ("1", "true", "yes")) if kind is bool else kind(value)
-        except ValueError:
-            raise ValueError(f"--set {item}: {value!r} is not a valid {kind.__name__}") from None
+        if kind is bool:
+            flag = value.strip().lower()
+            if flag not in _TRUE + _FALSE:
+                raise ValueError(f"--set {item}: expected true or false, got {value!r}")
+            out[key] = flag in _TRUE
+        else:
+            try:
+                out[key] = kind(value)
+            except ValueError:
+                raise ValueError(
+                    f"--set {item}: {value!r} is not a valid {kind.__name__}"
+                ) from None
+        try:  # the field's range (e.g. q_yrt >= 0, horizon >= 1), named after the item
+            settings._replace(**{key: out[key]}).validate()
+        except ValueError as exc:
+            msg = str(exc).removeprefix(f"{key}: ")
+            raise ValueError(f"--set {item}: {msg}") from None
     return out
+
+
+_TRUE = ("1", "true", "yes", "on")
+_FALSE = ("0", "false", "no", "off")
 
 
 def _summary(m: dict[str, Any]) -> None:
@@ -252,21 +343,32 @@ def _summary(m: dict[str, Any]) -> None:
             "n/a" if v is None or (isinstance(v, float) and not np.isfinite(v)) else format(v, fmt)
         )
 
-    print(
-        f"{m['scenario']} [{m['formulation']}; {'+'.join(m['objectives']) or 'none'}; "
-        f"N_p={m['horizon']}; {'warm' if m['warm_start'] else 'cold'} start]"
-    )
-    if m["formulation"] != "none":
-        scales = (
-            f"rho_scale {m['integrated_rho_scale']:g} (integrated)"
-            if m["formulation"] == "integrated"
-            else f"rho_scale {m['rho_scale']}, integrated_rho_scale {m['integrated_rho_scale']:g}"
+    if m["formulation"] == "none":
+        who = "driver speed PI" if m.get("example") == "cruise" else "driver alone"
+        print(f"{m['scenario']} [none: no MPC, {who}]")
+    else:
+        print(
+            f"{m['scenario']} [{m['formulation']}; {'+'.join(m['objectives'])}; "
+            f"N_p={m['horizon']}; {'warm' if m['warm_start'] else 'cold'} start]"
         )
+        if m["formulation"] == "integrated":
+            scales = f"rho_scale {m['integrated_rho_scale']:g} (integrated)"
+        else:
+            rs = m.get("rho_scale_enabled", m["rho_scale"])
+            rs = ", ".join(f"{x:g}" for x in rs) if isinstance(rs, list) else f"{rs:g}"
+            scales = (
+                f"rho_scale {rs} ({'+'.join(m['objectives'])}), "
+                f"integrated_rho_scale {m['integrated_rho_scale']:g}"
+            )
         print(
             f"  solver          eps_r {m['tol_primal']:g}, eps_s {m['tol_dual']:g}, "
             f"relaxation {m['relaxation']:g}, {scales}, warm_shift {m.get('warm_shift', 1)}, "
             f"anderson {m.get('anderson', 0)}"
         )
+    if "focus_steps" in m:
+        f0, f1 = m["focus_s"]
+        note = "; the run ends before it: focus numbers n/a" if m["focus_steps"] == 0 else ""
+        print(f"  focus window    {f0:g}..{f1:g} s, {m['focus_steps']} of {m['steps']} steps{note}")
     if m["formulation"] != "none":
         print(
             f"  e_sub (Nm)      p50 {f('e_sub_p50')}  p95 {f('e_sub_p95')}  max {f('e_sub_max')}"
@@ -300,6 +402,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     from .simulation import config_for, simulate
 
+    problem = _output_dir(args.out)
+    if problem:
+        return _fail(problem)
     out = Path(args.out)
     t_start = time.perf_counter()
     bar = _bar(4, args.quiet)
@@ -349,12 +454,34 @@ def add_cli_commands(sub: Any) -> None:
         metavar="OBJECTIVE",
         help="leave an objective out (LST/YRT or VSC/WSC); repeatable",
     )
-    p.add_argument("--mu", type=float, default=None, help="road friction (default: scenario's)")
-    p.add_argument("--duration", type=float, default=None, help="simulated seconds")
+    p.add_argument(
+        "--mu",
+        type=_arg_type(_mu),
+        default=None,
+        help="road friction in (0, 2] (default: the scenario's)",
+    )
+    p.add_argument(
+        "--duration",
+        type=_arg_type(_duration),
+        default=None,
+        help="simulated seconds, at least one control period (0.05 s); default: the scenario's",
+    )
     p.add_argument("--cold-start", action="store_true", help="cold start every step (paper)")
-    p.add_argument("--tol-primal", type=float, default=None, help="eps_r (squared, Nm^2)")
-    p.add_argument("--tol-dual", type=float, default=None, help="eps_s (squared)")
-    p.add_argument("--max-iter", type=int, default=None, help="controller iteration cap")
+    p.add_argument(
+        "--tol-primal",
+        type=_arg_type(_positive_finite),
+        default=None,
+        help="eps_r > 0 (squared, Nm^2)",
+    )
+    p.add_argument(
+        "--tol-dual", type=_arg_type(_positive_finite), default=None, help="eps_s > 0 (squared)"
+    )
+    p.add_argument(
+        "--max-iter",
+        type=_arg_type(_at_least_one, int),
+        default=None,
+        help="controller iteration cap (>= 1)",
+    )
     p.add_argument(
         "--rho-scale",
         default=None,
@@ -364,7 +491,7 @@ def add_cli_commands(sub: Any) -> None:
     )
     p.add_argument(
         "--relaxation",
-        type=float,
+        type=float,  # SimConfig checks (0, 2): "ampc: error: relaxation: ..." (exit 2)
         default=None,
         help="ADMM over-relaxation in (0, 2) for Local Explicit and the integrated MPC "
         "(1 = the paper); default: the example's tuned value",
@@ -387,7 +514,7 @@ def add_cli_commands(sub: Any) -> None:
     )
     p.add_argument(
         "--integrated-rho-scale",
-        type=float,
+        type=_arg_type(_positive_finite),
         default=None,
         help="factor on rho* of the IntegratedADMM (controller and r_time replay)",
     )
@@ -395,11 +522,17 @@ def add_cli_commands(sub: Any) -> None:
         "--set",
         action="append",
         metavar="FIELD=VALUE",
-        help="override a field of the example's settings (e.g. horizon=2, q_yrt=1e4)",
+        help="override a field of the example's settings (e.g. horizon=2, q_yrt=1e4); "
+        "horizon >= 1, dt > 0, q_* >= 0, r_* > 0, bounds >= 0",
     )
     p.add_argument("--no-shadow", action="store_true", help="skip the integrated shadow")
     p.add_argument("--no-timing", action="store_true", help="skip the r_time replay")
-    p.add_argument("--repeats", type=int, default=3, help="timing repeats per step")
+    p.add_argument(
+        "--repeats",
+        type=_arg_type(_at_least_one, int),
+        default=3,
+        help="timing repeats per step (>= 1)",
+    )
     p.add_argument("--float32", action="store_true")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--out", default="out", help="output directory")

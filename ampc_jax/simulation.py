@@ -90,7 +90,10 @@ __all__ = [
     "SimLog",
     "SimResult",
     "Simulator",
+    "MU_MAX",
     "build_topology",
+    "check_duration",
+    "check_mu",
     "config_for",
     "controller_solver",
     "integrated_solver",
@@ -111,6 +114,62 @@ _OK_STATUS = (0, 1)  # solved, max_iter_reached: applied; anything else falls ba
 
 # Cruise "none": no MPC, so a speed PI of the driver plays DTR (as in tests/test_manoeuvres.py).
 _CRUISE_DRIVER_PI = (1500.0, 200.0)
+
+MU_MAX = 2.0
+"""Largest road friction :func:`simulate` accepts (dry asphalt is about 1; the
+tyre model of :mod:`ampc_jax.plant` is not meant for more than racing slicks)."""
+
+
+def check_duration(duration: Any, name: str = "duration") -> float:
+    """A simulated time in s: finite and at least one control period (``CONTROL_DT``).
+
+    Returns it as a float; ValueError naming ``name`` otherwise.
+    """
+    if isinstance(duration, bool) or not isinstance(
+        duration, (int, float, np.integer, np.floating)
+    ):
+        raise ValueError(f"{name}: expected a number of seconds, got {duration!r}")
+    d = float(duration)
+    # a few ulps of slack: 0.05 typed by hand is one control period
+    if not (np.isfinite(d) and d >= CONTROL_DT * (1.0 - 1e-9)):
+        raise ValueError(
+            f"{name}: expected a finite time of at least one control period "
+            f"({CONTROL_DT:g} s), got {duration!r}"
+        )
+    return d
+
+
+def check_mu(mu: Any, name: str = "mu") -> Any:
+    """Road friction: finite and in (0, MU_MAX]; a scalar or an array (checked elementwise).
+
+    Returns ``mu`` unchanged (traced values are not checked); ValueError naming
+    ``name`` otherwise.
+    """
+    if isinstance(mu, jax.core.Tracer):
+        return mu
+    if isinstance(mu, bool):
+        raise ValueError(f"{name}: expected a friction coefficient, got {mu!r}")
+    try:
+        a = np.asarray(mu, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected a friction coefficient, got {mu!r}") from None
+    if a.size == 0 or not np.all(np.isfinite(a) & (a > 0) & (a <= MU_MAX)):
+        raise ValueError(f"{name}: expected a finite road friction in (0, {MU_MAX:g}], got {mu!r}")
+    return mu
+
+
+def _positive_float(name: str, v: Any) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+        raise ValueError(f"{name}: expected a positive finite number, got {v!r}")
+    if not (np.isfinite(v) and v > 0):
+        raise ValueError(f"{name}: expected a positive finite number, got {v!r}")
+    return float(v)
+
+
+def _positive_int(name: str, v: Any) -> int:
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+        raise ValueError(f"{name}: expected an integer >= 1, got {v!r}")
+    return int(v)
 
 
 # --------------------------------------------------------------------------- configuration
@@ -222,6 +281,12 @@ class SimConfig:
         tolerance, not the optimum it reports. ``None``: the example's default.
     params, driver : vehicle and driver data.
 
+    Every field is checked on construction (ValueError naming the field):
+    tolerances positive and finite, iteration caps integers >= 1, the
+    settings by their ``validate()`` (horizon >= 1, dt > 0, weights Q >= 0
+    and R > 0, bounds >= 0, all finite). ``settings.dt`` is the prediction
+    model's step; the closed loop itself always runs at ``CONTROL_DT``.
+
     The example defaults (``CONTROLLER_DEFAULTS``) and how they were chosen
     (an offline sweep over rho_scale x relaxation on logged closed-loop steps,
     ``bench/bench_closed_loop.py sweep``) are in ``docs/results.md``, "Solver
@@ -257,9 +322,23 @@ class SimConfig:
             raise ValueError(
                 f"formulation: expected one of {FORMULATIONS}, got {self.formulation!r}"
             )
+        kind = CruiseSettings if self.example == "cruise" else StabilitySettings
         if self.settings is None:
-            s = CruiseSettings() if self.example == "cruise" else StabilitySettings()
-            object.__setattr__(self, "settings", s)
+            object.__setattr__(self, "settings", kind())
+        if not isinstance(self.settings, kind):
+            raise ValueError(
+                f"settings: expected {kind.__name__} for the {self.example} example, "
+                f"got {type(self.settings).__name__}"
+            )
+        self.settings.validate()
+        for name in ("tol_primal", "tol_dual", "shadow_tol_primal", "shadow_tol_dual"):
+            object.__setattr__(self, name, _positive_float(name, getattr(self, name)))
+        for name in ("max_iter", "shadow_max_iter"):
+            object.__setattr__(self, name, _positive_int(name, getattr(self, name)))
+        for name in ("warm_start", "shadow"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"{name}: expected True or False, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, bool(getattr(self, name)))
         objectives = self.objectives_all
         for name in self.disabled:
             if name not in objectives:
@@ -616,7 +695,9 @@ class Simulator:
         def step(carry: _Carry, xs: Any) -> tuple[_Carry, Any]:
             k, bad = xs
             ps, ds = carry.plant, carry.driver
-            t = k.astype(dtype) * c.settings.dt
+            # the loop runs at the control period (plant_step, driver_step);
+            # settings.dt is only the prediction model's step
+            t = k.astype(dtype) * CONTROL_DT
             ds, steer, T_drv, v_ref = driver_step(ds, ps, t, scenario, dp)
             if c.example == "cruise" and use_ctrl:
                 T_drv = jnp.zeros_like(T_drv)  # the MPC's DTR tracks v_ref
@@ -788,10 +869,11 @@ def simulate_batch(
     deadlock intermittently on 2-core CPUs (``docs/results.md``): run with
     ``taskset -c 0`` or the XLA flags documented there.
     """
+    n_steps = _positive_int("n_steps", n_steps)
     dtype = dtype or jnp.result_type(float)
     scenarios = _cast(scenarios, dtype)
     if mu is not None:
-        scenarios = scenarios._replace(mu=jnp.asarray(mu, dtype))
+        scenarios = scenarios._replace(mu=jnp.asarray(check_mu(mu), dtype))
 
     def one(sc: Scenario) -> SimLog:
         return run_closed_loop(config, sc, n_steps, None, dtype)
@@ -849,7 +931,10 @@ class SimResult:
         """Headline numbers: e_sub (eq.suboptimality), iterations, r_time (eq.t_ratio), tracking.
 
         ``e_sub`` statistics pool every enabled agent input of every step (Nm);
-        ``focus`` restricts to the scenario's focus window. ``yaw_rms`` is the
+        ``focus`` restricts to the scenario's focus window (``focus_steps``
+        control steps; the ``*_focus`` numbers are NaN when the run ends before
+        the window starts). ``rho_scale_enabled`` is the part of ``rho_scale``
+        that Local Explicit uses (the enabled objectives'). ``yaw_rms`` is the
         RMS of ``yaw_rate - yaw_ref``; rear slip statistics use wheels RL, RR
         and ``rear_slip_excess_rms`` is the RMS of ``max(|slip| - S_x,des, 0)``.
         """
@@ -873,9 +958,15 @@ class SimResult:
             "tol_primal": c.tol_primal,
             "tol_dual": c.tol_dual,
             **c.solver_options(),
+            "rho_scale_enabled": (
+                list(c.enabled_rho_scale)
+                if isinstance(c.enabled_rho_scale, tuple)
+                else c.enabled_rho_scale
+            ),
             "steps": int(len(lg.t)),
             "duration_s": self.duration,
             "focus_s": list(self.focus),
+            "focus_steps": int(np.sum(fm)),
             "yaw_rms": _rms(yaw_err),
             "yaw_rms_focus": _rms(yaw_err[fm]),
             "speed_rms": _rms(np.asarray(lg.v_x) - np.asarray(lg.v_ref)),
@@ -949,20 +1040,31 @@ def simulate(
     ----------
     scenario : a name of ``manoeuvres.SCENARIOS`` or a ScenarioSpec.
     config : SimConfig (default :func:`config_for` the scenario).
-    duration : simulated time in s (default: the scenario's).
-    mu : road friction override.
+    duration : simulated time in s (default: the scenario's): finite and at
+        least one control period, ``CONTROL_DT`` (:func:`check_duration`);
+        rounded to whole control periods.
+    mu : road friction override, finite in (0, MU_MAX] (:func:`check_mu`).
     fault : optional (n_steps,) bool mask of NaN measurements.
     dtype : float64 (default with x64) or float32.
     timing : replay the run for eq.t_ratio (:func:`replay_timing`).
     """
     spec = SCENARIOS[scenario] if isinstance(scenario, str) else scenario
     config = config or config_for(spec)
+    if mu is not None and np.size(check_mu(mu)) != 1:
+        raise ValueError(
+            f"mu: expected one friction value (simulate_batch runs several), got {mu!r}"
+        )
     sc = spec.scenario if mu is None else spec.scenario._replace(mu=np.asarray(mu, np.float64))
-    dur = spec.duration if duration is None else float(duration)
-    n = int(round(dur / CONTROL_DT))
+    dur = check_duration(spec.duration if duration is None else duration)
+    n = max(1, int(round(dur / CONTROL_DT)))
     dtype = dtype or jnp.result_type(float)
     sc = _cast(sc, dtype)
     fault_arr = jnp.zeros((n,), bool) if fault is None else jnp.asarray(fault, bool)
+    if fault_arr.shape != (n,):
+        raise ValueError(
+            f"fault: expected a ({n},) mask (one entry per control step), got shape "
+            f"{fault_arr.shape}"
+        )
     compiled, t_compile = _compiled_run(config, sc, n, fault_arr, dtype)
     t0 = time.perf_counter()
     log = jax.block_until_ready(compiled(sc, fault_arr))

@@ -63,9 +63,11 @@ the reasoning and ``tests/test_vehicle.py`` pins every choice.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 __all__ = [
@@ -219,6 +221,53 @@ class ControlModel(NamedTuple):
     ub: tuple[Array, ...]  # per agent (n_u_i,)
 
 
+# --------------------------------------------------------------------------- settings checks
+def _check_settings(
+    s: NamedTuple,
+    *,
+    weights: tuple[str, ...],
+    input_weights: tuple[str, ...],
+    bounds: tuple[str, ...],
+) -> None:
+    """Refuse settings that make the closed-loop MPC meaningless (ValueError naming the field).
+
+    Python scalars only (the values :class:`~ampc_jax.simulation.SimConfig` hashes);
+    settings holding traced arrays are not checked here.
+    """
+
+    def number(name: str) -> float:
+        v = getattr(s, name)
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+            raise ValueError(f"{name}: expected a number, got {v!r}")
+        v = float(v)
+        if not math.isfinite(v):
+            raise ValueError(f"{name}: expected a finite number, got {v!r}")
+        return v
+
+    h = s.horizon
+    if isinstance(h, bool) or not isinstance(h, (int, np.integer)) or h < 1:
+        raise ValueError(f"horizon: expected an integer N_p >= 1 (prediction steps), got {h!r}")
+    if not number("dt") > 0:
+        raise ValueError(f"dt: expected a positive prediction step in s, got {s.dt!r}")
+    for name in weights:
+        if number(name) < 0:
+            raise ValueError(
+                f"{name}: expected a weight >= 0 (a negative Q_j makes the QP non-convex), "
+                f"got {getattr(s, name)!r}"
+            )
+    for name in input_weights:
+        if not number(name) > 0:
+            raise ValueError(
+                f"{name}: expected a weight > 0 (R_(i) = 0 leaves the objectives' Hessians "
+                f"H_j singular, so eq.opt_ro's rho* is undefined), got {getattr(s, name)!r}"
+            )
+    for name in bounds:
+        if number(name) < 0:
+            raise ValueError(f"{name}: expected a torque bound >= 0 Nm, got {getattr(s, name)!r}")
+    if not isinstance(s.literal, (bool, np.bool_)):
+        raise ValueError(f"literal: expected True or False, got {s.literal!r}")
+
+
 class CruiseSettings(NamedTuple):
     """Settings of the cruise-control example (eq.CC_system_1 .. eq.CC_system).
 
@@ -253,6 +302,21 @@ class CruiseSettings(NamedTuple):
     rtv_max: float = 500.0  # Nm, |T_RTV| bound
     fdb_max: float = 1000.0  # Nm, FDB brakes in [-fdb_max, 0]
     literal: bool = False  # True: paper's literal W_d (NOTES item 9)
+
+    def validate(self) -> CruiseSettings:
+        """Check the fields (ValueError naming the field); returns ``self``.
+
+        ``horizon`` an integer >= 1; ``dt`` > 0; ``q_*`` >= 0 (0 switches an
+        objective's tracking off; negative is non-convex); ``r_*`` > 0 (a zero
+        input weight leaves H_j singular); bounds >= 0 Nm; all finite.
+        """
+        _check_settings(
+            self,
+            weights=("q_lst", "q_yrt"),
+            input_weights=("r_dtr", "r_rtv", "r_fdb"),
+            bounds=("dtr_max", "rtv_max", "fdb_max"),
+        )
+        return self
 
     def Q(self) -> tuple[Array, ...]:
         """Per-objective weights Q_j in CRUISE_OBJECTIVES order, shapes (1, 1), (1, 1)."""
@@ -292,6 +356,24 @@ class StabilitySettings(NamedTuple):
     fdb_max: float = 1000.0  # Nm
     slip_des: float = 0.15  # S_x,des (eq.VSC_objective)
     literal: bool = False  # True: paper's literal W_d without tyre reaction
+
+    def validate(self) -> StabilitySettings:
+        """Check the fields (ValueError naming the field); returns ``self``.
+
+        As :meth:`CruiseSettings.validate`, and ``slip_des`` in [0, 1).
+        """
+        _check_settings(
+            self,
+            weights=("q_vsc", "q_wsc"),
+            input_weights=("r_tcr", "r_rtv", "r_fdb"),
+            bounds=("rtv_max", "fdb_max"),
+        )
+        sd = self.slip_des
+        if isinstance(sd, bool) or not isinstance(sd, (int, float, np.integer, np.floating)):
+            raise ValueError(f"slip_des: expected a slip ratio in [0, 1), got {sd!r}")
+        if not 0.0 <= float(sd) < 1.0:
+            raise ValueError(f"slip_des: expected a slip ratio in [0, 1), got {sd!r}")
+        return self
 
     def Q(self) -> tuple[Array, ...]:
         """Per-objective weights in STABILITY_OBJECTIVES order, shapes (1, 1), (2, 2)."""

@@ -1,6 +1,7 @@
 """Tests of ampc_jax.simulation: closed loop, shadow e_sub, --disable, fallback, CLI."""
 
 import json
+from dataclasses import replace
 
 import jax
 import jax.numpy as jnp
@@ -18,8 +19,9 @@ from ampc_jax.simulation import (
     integrated_solver,
     local_explicit_solver,
     simulate,
+    with_settings,
 )
-from ampc_jax.vehicle import CruiseSettings, StabilitySettings
+from ampc_jax.vehicle import CONTROL_DT, CruiseSettings, StabilitySettings
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -301,3 +303,123 @@ def test_simulate_batch_matches_single_runs():
                 np.asarray(getattr(logs, field)[b]), getattr(one, field), rtol=1e-9, atol=1e-9
             )
     assert not np.allclose(np.asarray(logs.omega[0]), np.asarray(logs.omega[1]))
+
+
+# --------------------------------------------------------------------------- input validation
+@pytest.mark.parametrize(
+    ("kw", "field"),
+    [
+        ({"tol_primal": -1.0}, "tol_primal"),
+        ({"tol_primal": 0.0}, "tol_primal"),
+        ({"tol_dual": float("nan")}, "tol_dual"),
+        ({"shadow_tol_primal": float("inf")}, "shadow_tol_primal"),
+        ({"max_iter": 0}, "max_iter"),
+        ({"max_iter": 10.0}, "max_iter"),
+        ({"max_iter": True}, "max_iter"),
+        ({"shadow_max_iter": -5}, "shadow_max_iter"),
+        ({"warm_start": "yes"}, "warm_start"),
+        ({"settings": StabilitySettings()}, "settings"),
+        ({"settings": CruiseSettings(q_yrt=-5.0)}, "q_yrt"),
+        ({"settings": CruiseSettings(horizon=0)}, "horizon"),
+        ({"settings": CruiseSettings(dt=0.0)}, "dt"),
+    ],
+)
+def test_config_fields_are_validated(kw, field):
+    with pytest.raises(ValueError, match=rf"^{field}: "):
+        SimConfig("cruise", **kw)
+
+
+def test_with_settings_is_validated_and_numbers_canonical():
+    with pytest.raises(ValueError, match=r"^r_rtv: expected a weight > 0"):
+        with_settings(config_for("cruise_lane_change"), r_rtv=0.0)
+    c = SimConfig("cruise", tol_primal=1, max_iter=np.int64(5))
+    assert isinstance(c.tol_primal, float) and type(c.max_iter) is int
+    assert hash(c) == hash(SimConfig("cruise", tol_primal=1.0, max_iter=5))
+
+
+@pytest.mark.parametrize(
+    ("kw", "match"),
+    [
+        ({"duration": 0}, r"^duration: .*at least one control period \(0.05 s\)"),
+        ({"duration": 0.01}, r"^duration: "),
+        ({"duration": -1.0}, r"^duration: "),
+        ({"duration": float("nan")}, r"^duration: expected a finite time"),
+        ({"mu": float("nan")}, r"^mu: expected a finite road friction in \(0, 2\]"),
+        ({"mu": -1.0}, r"^mu: "),
+        ({"mu": 0.0}, r"^mu: "),
+        ({"mu": 3.0}, r"^mu: "),
+        ({"mu": [0.5, 0.6]}, r"^mu: expected one friction value"),
+        ({"duration": 1.0, "fault": np.zeros(5, bool)}, r"^fault: expected a \(20,\) mask"),
+    ],
+)
+def test_simulate_refuses_bad_duration_mu_and_fault(kw, match):
+    with pytest.raises(ValueError, match=match):  # before anything is compiled
+        simulate("cruise_lane_change", **kw)
+
+
+def test_simulate_batch_refuses_bad_mu_and_steps():
+    from ampc_jax.manoeuvres import SCENARIOS, stack_scenarios
+    from ampc_jax.simulation import simulate_batch
+
+    cfg = config_for("stability_dlc", shadow=False)
+    stacked = stack_scenarios([SCENARIOS["stability_dlc"]] * 2)
+    with pytest.raises(ValueError, match=r"^mu: "):
+        simulate_batch(cfg, stacked, 4, mu=[0.3, -1.0])
+    with pytest.raises(ValueError, match=r"^n_steps: "):
+        simulate_batch(cfg, stacked, 0)
+
+
+def test_one_step_run_and_loop_time_is_the_control_period():
+    """The shortest run is one control period; the loop's time steps by CONTROL_DT
+    even when the prediction model's settings.dt differs (it used settings.dt)."""
+    cfg = config_for("cruise_lane_change", formulation="none", shadow=False)
+    one = simulate("cruise_lane_change", cfg, duration=CONTROL_DT)
+    assert one.log.t.shape == (1,) and one.duration == CONTROL_DT
+    res = simulate("cruise_lane_change", with_settings(cfg, dt=0.1), duration=0.1)
+    np.testing.assert_allclose(res.log.t, [0.0, CONTROL_DT])
+
+
+def test_summary_header_of_driver_alone_and_disabled_objective(cruise_run, capsys):
+    from ampc_jax.reporting import _summary
+
+    none = replace(cruise_run, config=config_for("cruise_lane_change", formulation="none"))
+    _summary(none.metrics())
+    out = capsys.readouterr().out
+    assert out.splitlines()[0] == "cruise_lane_change [none: no MPC, driver speed PI]"
+    for word in ("solver", "warm start", "LST", "rho_scale", "e_sub"):
+        assert word not in out, word
+    lst = replace(cruise_run, config=config_for("cruise_lane_change", disabled=("YRT",)))
+    m = lst.metrics()
+    assert m["rho_scale"] == [1.0, 0.5] and m["rho_scale_enabled"] == 1.0
+    _summary(m)
+    out = capsys.readouterr().out
+    assert out.splitlines()[0].startswith("cruise_lane_change [local_explicit; LST; N_p=2;")
+    assert "rho_scale 1 (LST)," in out and "0.5" not in out.splitlines()[1]
+
+
+def test_focus_numbers_na_only_before_the_window(cruise_run, capsys):
+    from ampc_jax.reporting import _summary
+
+    m = cruise_run.metrics()  # 2 s run, focus window 7..13 s
+    assert m["focus_steps"] == 0 and np.isnan(m["e_sub_p95_focus"])
+    assert np.isnan(m["yaw_rms_focus"])
+    _summary(m)
+    out = capsys.readouterr().out
+    assert "0 of 40 steps; the run ends before it" in out and "focus p95 n/a" in out
+    early = replace(cruise_run, focus=(1.5, 6.0)).metrics()  # as stability_dlc's window
+    assert early["focus_steps"] == 10 and np.isfinite(early["e_sub_p95_focus"])
+    assert np.isfinite(early["yaw_rms_focus"])
+    _summary(early)
+    out = capsys.readouterr().out
+    assert "10 of 40 steps\n" in out and "focus p95 n/a" not in out and "(focus n/a)" not in out
+
+
+def test_figures_without_e_sub_skip_convergence(cruise_run, tmp_path):
+    """--no-shadow logs no e_sub: the log-scaled convergence figure is left out, no crash."""
+    from ampc_jax.reporting import _figures
+
+    lg = cruise_run.log._replace(e_sub=np.full_like(cruise_run.log.e_sub, np.nan))
+    skipped = []
+    paths = _figures([replace(cruise_run, log=lg)], tmp_path, skipped=skipped)
+    assert [p.name for p in paths] == ["vehicle_response.png", "wheel_torques.png"]
+    assert len(skipped) == 1 and "convergence.png" in skipped[0]

@@ -544,3 +544,41 @@ def test_stability_wheel_rows_exact_when_the_tyre_is_saturated():
     plant = _input_responses(ps, steer, mu, wheel_torques, states)
     wheel = [(i, j) for i in (2, 3) for j in (0, 1)]
     _check_sign_and_ratio(plant, B, wheel, 0.95, 1.02, "saturated wheel")
+
+
+# --------------------------------------------------------------------------- settings checks
+def test_default_settings_validate_and_edges_are_allowed():
+    assert CruiseSettings().validate() == CruiseSettings()
+    assert StabilitySettings().validate() == StabilitySettings()
+    # Q_j = 0 switches an objective's tracking off, a zero bound fixes an agent at 0
+    CruiseSettings(q_yrt=0.0, fdb_max=0.0, horizon=1, q_lst=10).validate()
+    StabilitySettings(q_wsc=0, slip_des=0.0, literal=True).validate()
+
+
+@pytest.mark.parametrize(
+    ("kind", "kw", "field"),
+    [
+        (CruiseSettings, {"horizon": 0}, "horizon"),
+        (CruiseSettings, {"horizon": 2.0}, "horizon"),
+        (CruiseSettings, {"horizon": True}, "horizon"),
+        (CruiseSettings, {"dt": 0.0}, "dt"),
+        (CruiseSettings, {"dt": float("nan")}, "dt"),
+        (CruiseSettings, {"q_yrt": -5.0}, "q_yrt"),
+        (CruiseSettings, {"q_lst": float("inf")}, "q_lst"),
+        (CruiseSettings, {"q_lst": "4"}, "q_lst"),
+        (CruiseSettings, {"r_dtr": 0.0}, "r_dtr"),
+        (CruiseSettings, {"r_fdb": -1e-6}, "r_fdb"),
+        (CruiseSettings, {"dtr_max": -1.0}, "dtr_max"),
+        (CruiseSettings, {"literal": "no"}, "literal"),
+        (StabilitySettings, {"horizon": -1}, "horizon"),
+        (StabilitySettings, {"q_wsc": -0.02}, "q_wsc"),
+        (StabilitySettings, {"q_vsc": float("nan")}, "q_vsc"),
+        (StabilitySettings, {"r_tcr": 0.0}, "r_tcr"),
+        (StabilitySettings, {"rtv_max": float("inf")}, "rtv_max"),
+        (StabilitySettings, {"slip_des": 1.0}, "slip_des"),
+        (StabilitySettings, {"slip_des": -0.1}, "slip_des"),
+    ],
+)
+def test_settings_validate_names_the_field(kind, kw, field):
+    with pytest.raises(ValueError, match=rf"^{field}: expected"):
+        kind(**kw).validate()
