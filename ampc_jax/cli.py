@@ -21,6 +21,10 @@ __all__ = ["main"]
 EXAMPLES = Path(__file__).parent / "examples"
 
 
+MAX_ITER_DEFAULT = 1000
+"""``ampc solve --max-iter`` default (the Python API's ``LocalExplicit.max_iter`` is 500)."""
+
+
 def _fail(msg: str, code: int = 2) -> int:
     print(f"ampc: error: {msg}", file=sys.stderr)
     return code
@@ -57,8 +61,10 @@ def _positive(kind: type) -> Any:
             raise argparse.ArgumentTypeError(
                 f"expected a positive {kind.__name__}, got {text!r}"
             ) from None
-        if not v > 0:
-            raise argparse.ArgumentTypeError(f"expected a positive {kind.__name__}, got {text!r}")
+        if not (v > 0 and v < float("inf")):
+            raise argparse.ArgumentTypeError(
+                f"expected a positive finite {kind.__name__}, got {text!r}"
+            )
         return v
 
     return parse
@@ -90,6 +96,24 @@ def _warm_state(path: str, solver: Any, dt: Any) -> Any:
             f"--warm-start {path}: no 'warm_state' object; pass the --json output of a "
             f"previous 'ampc solve --formulation local_explicit'"
         )
+    for key in ("U", "Z", "gamma"):
+        if key not in ws:
+            raise ValueError(f"--warm-start {path}: warm_state has no {key!r}")
+        try:
+            arrs = (
+                [np.asarray(x, float) for x in ws[key]]
+                if key != "Z"
+                else [np.asarray(ws[key], float)]
+            )
+        except (TypeError, ValueError) as exc:
+            raise ValueError(
+                f"--warm-start {path}: warm_state.{key}: expected numbers in nested lists ({exc})"
+            ) from None
+        if not all(np.all(np.isfinite(a)) for a in arrs):
+            raise ValueError(
+                f"--warm-start {path}: warm_state.{key} contains a null, NaN or inf "
+                f"(a result without a usable iterate); start cold instead"
+            )
     try:
         state = solver.state_of(ws["U"], ws["Z"], ws["gamma"], dt)
     except (KeyError, TypeError, ValueError) as exc:
@@ -125,6 +149,9 @@ def cmd_solve(args: argparse.Namespace) -> int:
     from .topology import Problem, ProblemError
 
     path = _resolve_problem(args.problem)
+    if not path.exists():
+        shipped = ", ".join(sorted(x.stem for x in EXAMPLES.glob("*.json")))
+        return _fail(f"{args.problem}: no such problem file, nor a shipped example ({shipped})")
     try:
         problem = Problem.from_json(path)
         T = problem.topology
@@ -147,7 +174,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
                 return _fail(str(e))
             rho = None if args.rho is None else jnp.full((T.n_objectives,), args.rho, dtype)
             if rho is None:
-                _check_definite_hessians(T, problem.data(jnp.float64))
+                _check_definite_hessians(T, problem.data(_check_dtype(args)))
             warm = None
             if args.warm_start:
                 warm = _warm_state(args.warm_start, solver, dtype)
@@ -185,7 +212,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
                     from .integrated import merged_data, merged_topology
 
                     _check_definite_hessians(
-                        merged_topology(T), merged_data(problem.data(jnp.float64))
+                        merged_topology(T), merged_data(problem.data(_check_dtype(args)))
                     )
                 fn = jax.jit(solver.solve)
                 t0 = time.perf_counter()
@@ -194,6 +221,24 @@ def cmd_solve(args: argparse.Namespace) -> int:
                 res, solve_s = _timed(compiled, data, rho)
                 rho_out = {"integrated": float(np.asarray(res.rho)[0])}
             else:
+                ignored = [
+                    flag
+                    for flag, given in (
+                        ("--rho", args.rho is not None),
+                        ("--rho-scale", args.rho_scale != (1.0,)),
+                        ("--relaxation", args.relaxation != 1.0),
+                        ("--anderson", args.anderson != 0),
+                        ("--max-iter", args.max_iter != MAX_ITER_DEFAULT),
+                        ("--float32", args.float32),
+                    )
+                    if given
+                ]
+                if ignored:
+                    print(
+                        f"ampc: {', '.join(ignored)} ignored by --solver {args.solver} "
+                        f"(float64, its own iteration; --solver jax takes them)",
+                        file=sys.stderr,
+                    )
                 res = solve_reference(T, data, args.solver, eps=min(tol, 1e-6))
                 solve_s = float(res.state)
                 rho_out = {}
@@ -225,7 +270,20 @@ def cmd_solve(args: argparse.Namespace) -> int:
             "gamma": [np.asarray(x).tolist() for x in solver.multipliers(st)],
         }
     usable = int(res.status) in USABLE_STATUS and bool(np.all(np.isfinite(u)))
-    if usable and int(res.status) == 1:  # max_iter_reached
+    violation = _violation(data, u) if usable else float("nan")
+    out["constraint_violation"] = violation
+    if usable and int(res.status) == 1 and violation > VIOLATION_TOL:
+        # the last iterate of an unconverged ADMM run that breaks a general row is no
+        # input to apply; persistently so is what an infeasible problem looks like
+        print(
+            f"ampc: stopped at --max-iter {args.max_iter} with inputs that violate a "
+            f"constraint row by {violation:.3g} (primal residual "
+            f"{out['primal_residual']:.3g}): the problem may be infeasible "
+            f"(--formulation integrated checks), or needs more iterations",
+            file=sys.stderr,
+        )
+        usable = False
+    elif usable and int(res.status) == 1:  # max_iter_reached
         print(
             f"ampc: not converged: stopped at --max-iter {args.max_iter} with primal "
             f"residual {out['primal_residual']:.3g}, dual {out['dual_residual']:.3g} "
@@ -249,17 +307,48 @@ def cmd_solve(args: argparse.Namespace) -> int:
     return 0 if usable else 1
 
 
+VIOLATION_TOL = 1e-6
+"""Largest violation of a constraint row (A_in U^(k) - b_in^(k), in the rows'
+units) of an unconverged result still printed as inputs (``ampc solve``)."""
+
+
+def _violation(data: Any, u: np.ndarray) -> float:
+    """max(0, max_k,c (A_in U^(k) - b_in^(k))_c): how far inputs u (N_p, n_u)
+    break the constraint rows (general rows; the box rows hold after projection)."""
+    Ain = np.asarray(data.Ain, dtype=float)
+    if Ain.shape[0] == 0:
+        return 0.0
+    excess = np.asarray(u, float) @ Ain.T - np.asarray(data.bin, float)
+    return float(max(0.0, np.max(excess)))
+
+
+def _check_dtype(args: argparse.Namespace) -> Any:
+    """float64 for the singular-Hessian check, unless --float32 (x64 off: asking
+    for float64 would only warn and give float32)."""
+    import jax.numpy as jnp
+
+    return jnp.float32 if args.float32 else jnp.float64
+
+
 def _check_definite_hessians(T: Any, data: Any) -> None:
     """Refuse a singular H_j (:func:`~ampc_jax.formulations.singular_hessians`)
     naming the objective; ``--rho VALUE`` skips the check."""
     from .formulations import singular_hessians
 
     for j, low, high in singular_hessians(T, data):
+        name = f"objectives[{j}] ({T.objective_names[j]})"
+        if low <= 1e-14 * high:
+            raise ValueError(
+                f"{name}: its Hessian H_j is singular (smallest eigenvalue {low:.3g}, "
+                f"largest {high:.3g}): some input direction costs nothing in it (R_(i) "
+                f"singular and Q_j blind to it), so eq.opt_ro's rho* (which needs H_j^-1) "
+                f"is undefined; give --rho VALUE, or positive weights"
+            )
         raise ValueError(
-            f"objectives[{j}] ({T.objective_names[j]}): its Hessian H_j is singular "
-            f"(smallest eigenvalue {low:.3g}, largest {high:.3g}): some input direction "
-            f"costs nothing in it (R_(i) = 0 and Q_j blind to it), so eq.opt_ro's rho* "
-            f"(which needs H_j^-1) is undefined; give --rho VALUE, or positive weights"
+            f"{name}: its Hessian H_j is numerically singular (condition number "
+            f"{high / low:.3g} > 1e12; eigenvalues {low:.3g} to {high:.3g}), so eq.opt_ro's "
+            f"rho* (which needs H_j^-1) is unreliable; weights Q_j and R_(i) spanning "
+            f"about 12 orders of magnitude do this: rescale them, or give --rho VALUE"
         )
 
 
@@ -311,7 +400,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--rho", type=_parse_rho, default=None, help="'auto' (eq.opt_ro) or a value")
     p.add_argument(
-        "--tol", type=_positive(float), default=1e-6, help="eps_r = eps_s (squared norms)"
+        "--tol",
+        type=_positive(float),
+        default=1e-6,
+        help="eps_r = eps_s of eq.Convergence, absolute, on squared norms (default 1e-6)",
     )
     p.add_argument(
         "--rho-scale",
@@ -332,7 +424,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=0,
         help="Anderson acceleration memory of the ADMM iteration (0 = the paper's plain iteration)",
     )
-    p.add_argument("--max-iter", type=_positive(int), default=1000)
+    p.add_argument(
+        "--max-iter",
+        type=_positive(int),
+        default=MAX_ITER_DEFAULT,
+        help=f"iteration cap (default {MAX_ITER_DEFAULT})",
+    )
     p.add_argument(
         "--warm-start", metavar="FILE", help="a previous --json result to shift and reuse"
     )

@@ -305,19 +305,18 @@ def _make_spd_inverse(sweep_max: int) -> Any:
             return impl(M), False
         return _sweep_inverse(M), True
 
-    @jax.custom_vjp
+    # A JVP rule (not a VJP one), so that forward mode (jvp, jacfwd, hessian)
+    # works too; reverse mode transposes the rule, which is linear in dM.
+    @jax.custom_jvp
     def inverse(M: Any) -> Any:
         return impl(M)
 
-    def fwd(M: Any) -> tuple[Any, Any]:
+    @inverse.defjvp
+    def inverse_jvp(primals: tuple, tangents: tuple) -> tuple[Any, Any]:
+        (M,), (dM,) = primals, tangents
         X = impl(M)
-        return X, X
+        return X, -(X @ dM @ X)
 
-    def bwd(X: Any, g: Any) -> tuple[Any]:
-        Xt = jnp.swapaxes(X, -1, -2)
-        return (-(Xt @ g @ Xt),)
-
-    inverse.defvjp(fwd, bwd)
     return inverse
 
 
@@ -326,7 +325,7 @@ _spd_inverse = _make_spd_inverse(_SWEEP_MAX)
 
 Small matrices (n <= 4, ``_SWEEP_MAX``) and every vmapped batch use symmetric
 sweeps in pure JAX (:func:`_sweep_inverse`); a single larger problem uses
-LAPACK (:func:`_lapack_spd_inverse`). Reverse-mode derivative
+LAPACK (:func:`_lapack_spd_inverse`). Derivative (forward and reverse mode)
 d(M^-1) = -M^-1 dM M^-1."""
 
 _spd_inverse_dense = _make_spd_inverse(_SWEEP_MAX_DENSE)
@@ -673,6 +672,20 @@ _ANDERSON_SAFEGUARD = 2.0
 the previous one is dropped: the history restarts from the last accepted image."""
 
 
+def _check_rho(rho: Any, n_objectives: int) -> None:
+    """A given rho (a float or one per objective): positive and finite, or a
+    ValueError naming ``rho``. Traced values (inside ``jit``) are not checked."""
+    if isinstance(rho, jax.core.Tracer):
+        return
+    r = np.asarray(rho, dtype=float)
+    if r.ndim > 1 or (r.ndim == 1 and r.size not in (1, n_objectives)):
+        raise ValueError(
+            f"rho: expected a float or {n_objectives} values (one per objective), got shape {r.shape}"
+        )
+    if not np.all(np.isfinite(r) & (r > 0)):
+        raise ValueError(f"rho: expected positive finite values, got {rho!r}")
+
+
 def _anderson_memory(value: Any) -> int:
     """``value`` as an Anderson memory (an integer in 0..``_ANDERSON_MAX``), or a
     ValueError naming the field (``LocalExplicit.anderson``, ``SimConfig.anderson``)."""
@@ -860,6 +873,11 @@ class LocalExplicit:
     topology : the MACS structure.
     max_iter : iteration cap of the ``while_loop`` runner.
     tol_primal, tol_dual : eps_r and eps_s of eq.Convergence (squared norms).
+        Absolute, as in the paper, in the constraint rows' units squared: scale
+        them with the problem (inputs of order 1e-6 meet the 1e-6 default after
+        one iteration, far from the optimum). Only the first step U^(0) is
+        pinned tightly by the stopping rule in practice; later steps of ``u``
+        can be less accurate at the same tolerance.
     dual_residual : ``"slack"`` (default) tests ||Z_j^q - Z_j^(q-1)||^2 <= eps_s,
         the slack's change in the constraints' own units; ``"paper"`` tests
         ||s_j||^2 = ||rho_j (Z_j^q - Z_j^(q-1))||^2 <= eps_s as printed. The
@@ -935,6 +953,14 @@ class LocalExplicit:
     anderson: int = 0
 
     def __post_init__(self) -> None:
+        if isinstance(self.max_iter, bool) or not isinstance(self.max_iter, (int, np.integer)):
+            raise ValueError(f"max_iter: expected an integer >= 1, got {self.max_iter!r}")
+        if self.max_iter < 1:
+            raise ValueError(f"max_iter: expected an integer >= 1, got {self.max_iter}")
+        for name in ("tol_primal", "tol_dual"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float, np.floating, np.integer)) and 0 <= v < np.inf):
+                raise ValueError(f"{name}: expected a finite number >= 0, got {v!r}")
         if self.dual_residual not in ("slack", "paper"):
             raise ValueError(
                 f"dual_residual: expected 'slack' or 'paper', got {self.dual_residual!r}"
@@ -960,6 +986,12 @@ class LocalExplicit:
         if self.inverse not in ("auto", "formed", "factored"):
             raise ValueError(
                 f"inverse: expected 'auto', 'formed' or 'factored', got {self.inverse!r}"
+            )
+        if self.factorisation == "lowrank" and self.topology.singular_r:
+            names = [self.topology.agent_names[i] for i in self.topology.singular_r]
+            raise ValueError(
+                f"factorisation: 'lowrank' needs every R_(i) positive definite; singular "
+                f"for {names} (use 'dense' or 'auto')"
             )
         if self.inverse == "factored" and not self.lowrank:
             raise ValueError(
@@ -992,12 +1024,16 @@ class LocalExplicit:
         factorises r x r instead of n x n but needs more (small) operations, so
         near r = n the dense form is cheaper; measured on the vehicle examples
         (N_p = 2 to 20): one output against three or four inputs favours the
-        low-rank form, two outputs against three inputs the dense one.
+        low-rank form, two outputs against three inputs the dense one. Not when
+        some R_(i) is singular (``Topology.singular_r``): the Woodbury form
+        inverts the per-step block 2 R_j / m + rho_j A_in,j' A_in,j, which is then
+        singular whenever the rows leave a null direction of R_j free, although
+        K_j itself is positive definite.
         """
         if self.factorisation != "auto":
             return self.factorisation == "lowrank"
         lay = _layout(self.topology)
-        return 2 * max(lay.y_sizes) <= lay.cols.shape[1]
+        return 2 * max(lay.y_sizes) <= lay.cols.shape[1] and not self.topology.singular_r
 
     @property
     def factored(self) -> bool:
@@ -1044,6 +1080,7 @@ class LocalExplicit:
             scale = np.broadcast_to(np.asarray(self.rho_scale, dtype=float), (J,))
             rho_arr = self._optimal_rhos(c, Ain, AtA) * jnp.asarray(scale, dt)
         else:
+            _check_rho(rho, J)
             rho_arr = jnp.broadcast_to(jnp.asarray(rho, dt), (J,))
         # K_j = H_j + rho_j I (x) A_in,j'A_in,j, all objectives in one batched
         # factorisation; its inverse, formed or kept factored (``inverse``), makes an
@@ -1275,6 +1312,8 @@ class LocalExplicit:
 
     def run_fixed(self, setup: LocalSetup, state: ADMMState, iterations: int) -> ADMMState:
         """Exactly ``iterations`` iterations under ``lax.scan`` (differentiable)."""
+        if isinstance(iterations, bool) or int(iterations) < 1:
+            raise ValueError(f"iterations: expected an integer >= 1, got {iterations!r}")
         carry, body, iterate_of = self._loop(setup, state)
         out, _ = jax.lax.scan(lambda c, _: (body(c), None), carry, None, length=iterations)
         return iterate_of(out)

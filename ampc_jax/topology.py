@@ -70,9 +70,29 @@ class ProblemError(ValueError):
 # ----------------------------------------------------------------------------
 
 
+def _non_number(value: Any) -> Any:
+    """The first entry of nested lists that is not a number (a string, a
+    boolean, null), or None when every entry is one."""
+    if isinstance(value, (str, bytes, bool, np.bool_)) or value is None:
+        return repr(value) if value is not None else "null"
+    if isinstance(value, np.ndarray):
+        if value.dtype.kind in "biufc":
+            return "a boolean array" if value.dtype.kind == "b" else None
+        value = value.tolist()
+    if isinstance(value, (list, tuple)):
+        for v in value:
+            bad = _non_number(v)
+            if bad is not None:
+                return bad
+    return None
+
+
 def _array(value: Any, field_name: str) -> np.ndarray:
     if value is None:
         raise ProblemError(f"{field_name}: a number or array is required, got nothing")
+    bad = _non_number(value)
+    if bad is not None:
+        raise ProblemError(f"{field_name}: expected numbers, got {bad:.40}")
     try:
         arr = np.asarray(value, dtype=float)
     except (TypeError, ValueError) as exc:
@@ -88,6 +108,12 @@ def _array(value: Any, field_name: str) -> np.ndarray:
 def _bound(value: Any, field_name: str, n: int, side: str) -> np.ndarray:
     """Bounds may be -inf (``side="lower"``) or +inf (upper): no row; never
     NaN, and never the infinity that no input can satisfy."""
+    bad = _non_number(value)
+    if bad is not None:
+        raise ProblemError(
+            f"{field_name}: expected {n} numbers, got {bad:.40} (no bound: leave the "
+            f"field out, or JSON -Infinity / Infinity)"
+        )
     try:
         arr = np.asarray(value, dtype=float)
     except (TypeError, ValueError) as exc:
@@ -154,6 +180,13 @@ def _weight(value: Any, field_name: str, n: int, *, definite: bool) -> np.ndarra
             f"(smallest eigenvalue {eig.min():.3g})"
         )
     return arr
+
+
+def _is_singular(R: np.ndarray) -> bool:
+    """Whether a validated symmetric positive semi-definite weight is singular
+    (smallest eigenvalue at most 1e-12 of the largest entry, as :func:`_weight`)."""
+    scale = max(1.0, float(np.max(np.abs(R))))
+    return bool(np.linalg.eigvalsh(R).min() <= 1e-12 * scale)
 
 
 def _per_step(
@@ -499,6 +532,7 @@ class Problem:
             finite_lb=np.concatenate([np.isfinite(lb) for lb in lbs]),
             finite_ub=np.concatenate([np.isfinite(ub) for ub in ubs]),
             general_rows=gen_A,
+            singular_r=[i for i, R in enumerate(Rs) if _is_singular(R)],
         )
         object.__setattr__(self, "topology", topo)
         object.__setattr__(
@@ -578,6 +612,8 @@ class Topology:
         full column rank lets eq.opt_ro skip any eigenvalue threshold (see
         ``formulations.optimal_rho``).
     total_rank : rank of all per-step rows A_in (the undecomposed problem's).
+    singular_r : agents whose weight R_(i) is singular (from the problem's
+        numbers; Local Explicit's low-rank factorisation needs R_(i) > 0).
     """
 
     n_x: int
@@ -593,6 +629,7 @@ class Topology:
     pinned_rank: tuple[int, ...] = ()
     group_rank: tuple[int, ...] = ()
     total_rank: int = 0
+    singular_r: tuple[int, ...] = ()
 
     @classmethod
     def build(
@@ -608,8 +645,10 @@ class Topology:
         finite_lb: Sequence[bool] | None = None,
         finite_ub: Sequence[bool] | None = None,
         general_rows: Sequence[np.ndarray] = (),
+        singular_r: Sequence[int] = (),
     ) -> Topology:
-        """Build a topology. Bounds are finite by default (two box rows per input)."""
+        """Build a topology. Bounds are finite by default (two box rows per input);
+        ``singular_r`` lists the agents whose R_(i) is singular."""
         n_u = int(sum(agent_sizes))
         finite_lb = np.ones(n_u, bool) if finite_lb is None else np.asarray(finite_lb, bool)
         finite_ub = np.ones(n_u, bool) if finite_ub is None else np.asarray(finite_ub, bool)
@@ -656,6 +695,7 @@ class Topology:
             general_agents=tuple(gen_agents),
             covered_inputs=tuple(bool(x) for x in covered),
             pinned_rank=tuple(ranks),
+            singular_r=tuple(sorted(int(i) for i in singular_r)),
         )
         box_A = np.zeros((len(box), n_u))
         for r, (k, s) in enumerate(box):

@@ -162,6 +162,44 @@ def test_infeasible_problem_prints_no_inputs(capsys, tmp_path, solver):
     assert "no solution (infeasible)" in out.err
 
 
+def test_local_explicit_on_an_infeasible_problem_prints_no_inputs(capsys, tmp_path):
+    """ADMM has no infeasibility certificate: it stops at --max-iter. Its last
+    iterate breaks the general row, so no inputs are printed (exit 1) and
+    stderr says the problem may be infeasible; Clarabel says infeasible."""
+    path = _problem_file(tmp_path, constraints=[{"A": {"a": [[-1.0]]}, "b": [-5.0]}])
+    code = main(["solve", path, "--max-iter", "300", "--json"])
+    out = capsys.readouterr()
+    assert code == 1
+    result = json.loads(out.out, parse_constant=pytest.fail)
+    assert result["status"] == "max_iter_reached"
+    assert set(result["u0"].values()) == {None}
+    assert result["constraint_violation"] > 1.0
+    assert "may be infeasible" in out.err
+    # a feasible problem stopped early prints its (feasible) last iterate
+    capped = run_json(capsys, "--max-iter", "3")
+    assert capped["status"] == "max_iter_reached" and capped["constraint_violation"] <= 1e-6
+    assert None not in capped["u0"].values()
+
+
+def test_cli_input_mistakes_are_named(capsys, tmp_path):
+    # a mistyped example name lists the shipped ones
+    assert main(["solve", "cruise_contro"]) == 2
+    assert "nor a shipped example (cruise_control" in capsys.readouterr().err
+    # a non-finite tolerance
+    assert exit_code(["solve", "cruise_control", "--tol", "inf"]) == 2
+    assert "positive finite" in capsys.readouterr().err
+    # a warm start whose iterate is not finite (a result without a usable iterate)
+    first = run_json(capsys)
+    first["warm_state"]["Z"][0][0] = None
+    bad = tmp_path / "warm.json"
+    bad.write_text(json.dumps(first))
+    assert main(["solve", "cruise_control", "--warm-start", str(bad)]) == 2
+    assert "warm_state.Z contains a null" in capsys.readouterr().err
+    # options the reference solvers do not take are reported, not silently dropped
+    assert main(["solve", "cruise_control", "--formulation", "integrated", "--rho", "2"]) == 0
+    assert "--rho ignored by --solver clarabel" in capsys.readouterr().err
+
+
 def test_bad_problem_files_go_to_stderr(capsys, tmp_path):
     assert main(["solve", str(tmp_path / "missing.json")]) == 2
     assert "missing.json" in capsys.readouterr().err
@@ -240,6 +278,32 @@ def test_singular_hessian_needs_a_given_rho(capsys, tmp_path):
     assert given["converged"]
     for agent, u0 in ref["u0"].items():
         np.testing.assert_allclose(given["u0"][agent], u0, rtol=1e-3, atol=1e-4)
+
+
+def test_ill_conditioned_hessian_is_not_called_singular(capsys, tmp_path):
+    """R_a = 1e-13 (positive) and Q blind to a's last step: H_j is positive
+    definite with a condition number above 1e12; the refusal says so instead
+    of blaming R = 0."""
+    path = tmp_path / "illcond.json"
+    path.write_text(
+        json.dumps(
+            {
+                "horizon": 3,
+                "A": [[1.0, 0.1], [0.0, 1.0]],
+                "x0": [0.0, 0.0],
+                "agents": [
+                    {"name": "a", "B": [[0.0], [1.0]], "R": [1e-13], "lb": [-1], "ub": [1]},
+                    {"name": "b", "B": [[0.0], [0.5]], "R": [0.1], "lb": [-1], "ub": [1]},
+                ],
+                "objectives": [
+                    {"name": "o", "C": [[1.0, 0.0], [0.0, 1.0]], "Q": [1.0, 0.0], "ref": [1.0, 0.0]}
+                ],
+            }
+        )
+    )
+    assert main(["solve", str(path), "--json"]) == 2
+    err = capsys.readouterr().err
+    assert "numerically singular (condition number" in err and "R_(i) singular" not in err
 
 
 def run_json_file(capsys, path, *args):

@@ -10,7 +10,7 @@ import pytest
 from ampc_jax.formulations import LocalExplicit, local_costs, optimal_rho, shift_state
 from ampc_jax.generate import random_problem
 from ampc_jax.integrated import solve_reference
-from ampc_jax.topology import Agent, Objective, Problem
+from ampc_jax.topology import Agent, Constraint, Objective, Problem
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -468,6 +468,11 @@ def test_fixed_iterations_gradient_matches_finite_differences(inverse, anderson)
     e = jnp.array([1.0, 0.0])
     fd_rho = (f(0.1, rho + h * e) - f(0.1, rho - h * e)) / (2 * h)
     np.testing.assert_allclose(g_rho[0], fd_rho, rtol=1e-4, atol=1e-9)
+    # forward mode too (jvp): the same directional derivatives
+    _, t_ref = jax.jvp(lambda r: f(r, rho), (0.1,), (1.0,))
+    np.testing.assert_allclose(t_ref, fd_ref, rtol=1e-5, atol=1e-9)
+    _, t_rho = jax.jvp(lambda r: f(0.1, r), (rho,), (e,))
+    np.testing.assert_allclose(t_rho, fd_rho, rtol=1e-4, atol=1e-9)
 
 
 def test_gradient_wrt_Q_with_padded_outputs():
@@ -577,6 +582,8 @@ def test_spd_inverse_gradient_against_finite_differences():
         fd = (f(A + h * D) - f(A - h * D)) / (2 * h)
         g = jax.grad(f)(A)
         np.testing.assert_allclose(float(jnp.sum(g * D)), float(fd), rtol=1e-6)
+        _, t = jax.jvp(f, (A,), (D,))  # forward mode
+        np.testing.assert_allclose(float(t), float(fd), rtol=1e-6)
 
         # the same derivative through the batched (sweep) path
         def fb(a, w):
@@ -947,3 +954,47 @@ def test_matches_independent_integrated_qp(n_obj, singular_q, path):
     assert active_first > 0  # and binds the compared first-step inputs somewhere
     # every feature matters: without it the comparison above fails
     assert not [w for w, e in missed.items() if e <= 3.0], missed
+
+
+def test_singular_r_falls_back_to_the_dense_factorisation():
+    """R_(i) singular along (1, -1) and the inputs covered only by +-(u1 + u2) <= 1:
+    K_j is positive definite but the Woodbury form's per-step block 2R + rho A'A
+    is not. One output would pick the low-rank path; with a singular R 'auto'
+    takes the dense one and matches Clarabel, and 'lowrank' is refused."""
+    p = Problem(
+        horizon=4,
+        A=[[0.9, 0.1], [0.0, 0.8]],
+        x0=[1.0, -0.5],
+        agents=[Agent("a", B=[[1.0, 0.3], [0.2, 1.0]], R=[[0.1, 0.1], [0.1, 0.1]])],
+        objectives=[Objective("o", C=[[1.0, 0.0]], Q=[1.0], ref=[3.0])],
+        constraints=[Constraint(A={"a": [[1.0, 1.0], [-1.0, -1.0]]}, b=[1.0, 1.0])],
+    )
+    T, d = p.topology, p.data()
+    assert T.singular_r == (0,)
+    le = LocalExplicit(T, **TIGHT)
+    assert not le.lowrank
+    r = jax.jit(le.solve)(d)
+    ref = solve_reference(T, d)
+    assert int(r.status) == 0
+    np.testing.assert_allclose(np.asarray(r.u0), ref.u[0], rtol=1e-3, atol=ATOL)
+    with pytest.raises(ValueError, match="factorisation.*singular for \\['a'\\]"):
+        LocalExplicit(T, factorisation="lowrank")
+
+
+def test_solver_settings_and_given_rho_are_validated():
+    p = random_problem(0, 2)
+    T, d = p.topology, p.data()
+    for kw, message in [
+        (dict(max_iter=0), "max_iter: expected an integer >= 1"),
+        (dict(max_iter=2.5), "max_iter: expected an integer"),
+        (dict(tol_primal=-1.0), "tol_primal: expected a finite number >= 0"),
+        (dict(tol_dual=float("inf")), "tol_dual: expected a finite number >= 0"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            LocalExplicit(T, **kw)
+    le = LocalExplicit(T)
+    for rho in (-1.0, 0.0, float("nan"), [1.0, 2.0, 3.0]):
+        with pytest.raises(ValueError, match="rho: expected"):
+            le.solve(d, rho)
+    with pytest.raises(ValueError, match="iterations: expected an integer >= 1"):
+        le.solve_fixed(d, 0)

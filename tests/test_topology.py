@@ -173,6 +173,11 @@ BAD = [
     (("agents",), [], r"agents: expected a non-empty list"),
     (("objectives",), [], r"objectives: expected a non-empty list"),
     (("bogus",), 1, r"problem: unknown key\(s\) \['bogus'\]"),
+    (("A",), [[1, 0, 0], [0, "0.95", 0], [0, 0, 1]], r"A: expected numbers, got '0\.95'"),
+    (("objectives", 0, "Q"), ["10"], r"objectives\[0\]\.Q \(pos\): expected numbers, got '10'"),
+    (("agents", 0, "lb"), [True], r"agents\[0\]\.lb \(a\): expected 1 numbers, got True"),
+    (("agents", 0, "ub"), ["inf"], r"agents\[0\]\.ub \(a\): expected 1 numbers, got 'inf'"),
+    (("x0",), [0.0, None, 0.0], r"x0: expected numbers, got null"),
 ]
 
 
