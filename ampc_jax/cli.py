@@ -170,6 +170,8 @@ def cmd_solve(args: argparse.Namespace) -> int:
                     relaxation=args.relaxation,
                     anderson=args.anderson,
                 )
+            except ProblemError as e:  # the topology does not suit Local Explicit
+                return _fail(f"{path}: {e}")
             except ValueError as e:
                 return _fail(str(e))
             rho = None if args.rho is None else jnp.full((T.n_objectives,), args.rho, dtype)

@@ -216,7 +216,9 @@ def test_bad_problem_files_go_to_stderr(capsys, tmp_path):
     code = main(["solve", free, "--formulation", "local_explicit", "--json"])
     out = capsys.readouterr()
     assert code == 2 and out.out == ""
-    assert out.err.startswith("ampc: error: agents[2] (c): input 0 appears in no constraint row")
+    assert out.err.startswith(
+        f"ampc: error: {free}: agents[2] (c): input 0 appears in no constraint row"
+    )
 
 
 def test_overflowing_problem_gives_strict_json(capsys, tmp_path):
