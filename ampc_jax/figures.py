@@ -148,13 +148,26 @@ def convergence(res: Any) -> Any:
     es = np.where(np.isfinite(es), es, np.nan)
     ncol = 3 if res.timing is not None else 2
     fig, axs = plt.subplots(2, ncol, figsize=(4 * ncol, 6.5), constrained_layout=True)
-    _box(axs[0, 0], es, es[fm], "(a) e_sub, max over inputs (Nm)", log=True)
+    has_es = bool(np.any(np.isfinite(es)))  # none without the shadow MPC
+    if has_es:
+        _box(axs[0, 0], es, es[fm], "(a) e_sub, max over inputs (Nm)", log=True)
     _box(axs[0, 1], lg.iterations, lg.iterations[fm], "(b) iterations")
     for a in axs[1]:
         _shade(a, res)
         a.set_xlabel("t (s)")
         a.grid(alpha=0.3)
-    axs[1, 0].semilogy(lg.t, np.maximum(es, 1e-6), lw=1)
+    if has_es:
+        axs[1, 0].semilogy(lg.t, np.maximum(es, 1e-6), lw=1)
+    else:
+        for a in (axs[0, 0], axs[1, 0]):
+            a.text(
+                0.5,
+                0.5,
+                "no e_sub: run without\nthe shadow integrated MPC",
+                ha="center",
+                va="center",
+                transform=a.transAxes,
+            )
     axs[1, 0].set_ylabel("e_sub (Nm)")
     axs[1, 1].plot(lg.t, lg.iterations, lw=1, label="Local Explicit")
     axs[1, 1].set_ylabel("iterations")

@@ -314,7 +314,7 @@ def _make_spd_inverse(sweep_max: int) -> Any:
     @inverse.defjvp
     def inverse_jvp(primals: tuple, tangents: tuple) -> tuple[Any, Any]:
         (M,), (dM,) = primals, tangents
-        X = impl(M)
+        X = inverse(M)  # not impl: so that the rule itself differentiates (hessian)
         return X, -(X @ dM @ X)
 
     return inverse
@@ -1312,7 +1312,11 @@ class LocalExplicit:
 
     def run_fixed(self, setup: LocalSetup, state: ADMMState, iterations: int) -> ADMMState:
         """Exactly ``iterations`` iterations under ``lax.scan`` (differentiable)."""
-        if isinstance(iterations, bool) or int(iterations) < 1:
+        if (
+            isinstance(iterations, bool)
+            or not isinstance(iterations, (int, np.integer))
+            or iterations < 1
+        ):
             raise ValueError(f"iterations: expected an integer >= 1, got {iterations!r}")
         carry, body, iterate_of = self._loop(setup, state)
         out, _ = jax.lax.scan(lambda c, _: (body(c), None), carry, None, length=iterations)

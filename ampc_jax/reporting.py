@@ -169,11 +169,8 @@ def write_metrics(metrics: dict[str, Any], path: str | Path) -> Path:
     return path
 
 
-def _figures(
-    results: list[Any], out: Path, stem: str = "", skipped: list[str] | None = None
-) -> list[Path]:
-    """Write the figures of ``results`` (the first is the main run); notes on figures
-    left out are appended to ``skipped``."""
+def _figures(results: list[Any], out: Path, stem: str = "") -> list[Path]:
+    """Write the figures of ``results`` (the first is the main run)."""
     from . import figures
 
     main = results[0]
@@ -182,10 +179,8 @@ def _figures(
         figures.save(figures.wheel_torques(main), out / f"{stem}wheel_torques.png"),
     ]
     if main.config.formulation != "none":
-        if np.isfinite(np.asarray(main.log.e_sub, float)).any():
-            paths.append(figures.save(figures.convergence(main), out / f"{stem}convergence.png"))
-        elif skipped is not None:  # no shadow: no e_sub for its (log-scaled) panel
-            skipped.append(f"{stem}convergence.png (no e_sub logged: --no-shadow)")
+        # without the shadow (--no-shadow) its e_sub panels say so
+        paths.append(figures.save(figures.convergence(main), out / f"{stem}convergence.png"))
     if len(results) > 1:
         paths.append(
             figures.save(figures.yaw_error_comparison(results), out / f"{stem}yaw_error.png")
@@ -276,16 +271,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     write_metrics(m, out / "metrics.json")
     bar.update(1)
     bar.set_description("figures")
-    skipped: list[str] = []
-    figs = _figures([res], out, skipped=skipped)
+    figs = _figures([res], out)
     bar.update(1)
     bar.close()
     _summary(m)
     print(f"wrote {out / 'timeseries.csv'}, {out / 'metrics.json'}")
     for p in figs:
         print(f"figure {p}")
-    for note in skipped:
-        print(f"figure {note} skipped")
     return 0
 
 

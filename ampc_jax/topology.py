@@ -612,8 +612,12 @@ class Topology:
         full column rank lets eq.opt_ro skip any eigenvalue threshold (see
         ``formulations.optimal_rho``).
     total_rank : rank of all per-step rows A_in (the undecomposed problem's).
-    singular_r : agents whose weight R_(i) is singular (from the problem's
-        numbers; Local Explicit's low-rank factorisation needs R_(i) > 0).
+    singular_r : agents whose weight R_(i) is singular, from the problem's
+        numbers when built by :class:`Problem` (``Topology.build`` takes it as
+        an argument, default none). Local Explicit's low-rank factorisation
+        needs R_(i) > 0; with other R in a ``ProblemData`` (a sweep, or a
+        gradient through R) keep them positive definite, or use
+        ``factorisation="dense"``.
     """
 
     n_x: int

@@ -291,7 +291,7 @@ class CruiseSettings(NamedTuple):
     ``jnp.where``) except ``horizon``, which is a size and must stay static.
     """
 
-    dt: float = CONTROL_DT  # s, control period (20 Hz)
+    dt: float = CONTROL_DT  # s, the prediction model's step (the loop runs at CONTROL_DT)
     horizon: int = 2  # N_p, prediction steps (static)
     q_lst: float = 4.0  # (m/s)^-2, Q_LST
     q_yrt: float = 1.0e4  # (rad/s)^-2, Q_YRT
@@ -345,7 +345,7 @@ class StabilitySettings(NamedTuple):
     even this small Q_WSC gives a fast wheel-speed loop.
     """
 
-    dt: float = CONTROL_DT  # s
+    dt: float = CONTROL_DT  # s, the prediction model's step (the loop runs at CONTROL_DT)
     horizon: int = 3  # N_p (static)
     q_vsc: float = 2000.0  # (rad/s)^-2, Q_VSC
     q_wsc: float = 0.02  # (rad/s)^-2, Q_WSC (each rear wheel)

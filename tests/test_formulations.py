@@ -584,6 +584,11 @@ def test_spd_inverse_gradient_against_finite_differences():
         np.testing.assert_allclose(float(jnp.sum(g * D)), float(fd), rtol=1e-6)
         _, t = jax.jvp(f, (A,), (D,))  # forward mode
         np.testing.assert_allclose(float(t), float(fd), rtol=1e-6)
+        # second derivatives (the rule differentiates itself): d/dh of the
+        # directional derivative, against finite differences of the gradient
+        hvp = jax.jvp(jax.grad(f), (A,), (D,))[1]
+        fd2 = (jax.grad(f)(A + h * D) - jax.grad(f)(A - h * D)) / (2 * h)
+        np.testing.assert_allclose(hvp, fd2, rtol=1e-5, atol=1e-8)
 
         # the same derivative through the batched (sweep) path
         def fb(a, w):

@@ -106,7 +106,9 @@ pub fn start(
         .custom_flags(libc::O_NONBLOCK | libc::O_CLOEXEC)
         .open(path)
         .map_err(|e| {
-            if e.raw_os_error() == Some(libc::ENXIO) {
+            use std::os::unix::fs::FileTypeExt;
+            let fifo = std::fs::metadata(path).is_ok_and(|m| m.file_type().is_fifo());
+            if fifo && e.raw_os_error() == Some(libc::ENXIO) {
                 Error::Config(format!(
                     "log_path {} is a FIFO with no reader; open it for reading first or use a regular file",
                     path.display()
@@ -119,7 +121,6 @@ pub fn start(
     let out = Out {
         file,
         buf: Vec::with_capacity(FLUSH_AT + 128),
-        lines: 0,
         errors,
     };
     let handle = std::thread::Builder::new()
@@ -132,24 +133,57 @@ pub fn start(
 /// Buffered lines are written once this many bytes are pending.
 const FLUSH_AT: usize = 8192;
 
+/// Most bytes kept waiting for a slow reader (a FIFO); a line that would
+/// exceed it is dropped whole and counted, so the buffer stays bounded.
+const MAX_PENDING: usize = 64 * 1024;
+
 /// The writer's own buffer, so lines lost to a failed write can be counted.
+///
+/// `buf` holds what is not yet written, possibly starting in the middle of a
+/// line that a partial write began: it is always finished before anything
+/// else, so the file only ever holds whole lines (a non-blocking write to a
+/// pipe can take part of a buffer).
 struct Out {
     file: std::fs::File,
     buf: Vec<u8>,
-    lines: u64,
     errors: Arc<AtomicU64>,
 }
 
 impl Out {
-    fn flush(&mut self) {
-        if self.buf.is_empty() {
-            return;
+    /// Queue one whole line, or count it lost when a stalled reader has left
+    /// `MAX_PENDING` bytes waiting.
+    fn push(&mut self, line: &[u8]) {
+        if self.buf.len() + line.len() > MAX_PENDING {
+            self.errors.fetch_add(1, Ordering::Relaxed);
+        } else {
+            self.buf.extend_from_slice(line);
         }
-        if self.file.write_all(&self.buf).is_err() {
-            self.errors.fetch_add(self.lines, Ordering::Relaxed);
+    }
+
+    /// Write what the file takes now. `WouldBlock` keeps the rest for later;
+    /// any other error loses (and counts) every line still pending.
+    /// Returns whether bytes are still pending.
+    fn flush(&mut self) -> bool {
+        while !self.buf.is_empty() {
+            match self.file.write(&self.buf) {
+                Ok(0) => return self.lose_pending(),
+                Ok(n) => {
+                    self.buf.drain(..n);
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => return true,
+                Err(_) => return self.lose_pending(),
+            }
         }
+        false
+    }
+
+    fn lose_pending(&mut self) -> bool {
+        // a line already begun counts as lost too
+        let lines = self.buf.iter().filter(|&&b| b == b'\n').count() as u64;
+        self.errors.fetch_add(lines, Ordering::Relaxed);
         self.buf.clear();
-        self.lines = 0;
+        false
     }
 }
 
@@ -160,17 +194,25 @@ fn writer_loop(rx: Receiver<Entry>, mut out: Out, channel: &str) {
             Ok(e) => {
                 line.clear();
                 format_line(&mut line, e.wall_ns, channel, &e.frame, e.dir);
-                out.buf.extend_from_slice(line.as_bytes());
-                out.lines += 1;
+                out.push(line.as_bytes());
                 if out.buf.len() >= FLUSH_AT {
                     out.flush();
                 }
             }
-            Err(RecvTimeoutError::Timeout) => out.flush(),
+            Err(RecvTimeoutError::Timeout) => {
+                out.flush();
+            }
             Err(RecvTimeoutError::Disconnected) => break,
         }
     }
-    out.flush();
+    // On stop: give a slow reader up to about 100 ms, then count the rest lost.
+    for _ in 0..50 {
+        if !out.flush() {
+            return;
+        }
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    out.lose_pending();
 }
 
 #[cfg(test)]
@@ -262,5 +304,73 @@ mod tests {
             e.to_string().contains("log_path") && e.to_string().contains("FIFO"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn a_slow_pipe_reader_gets_whole_lines_only() {
+        // A pipe with a small buffer, written non-blocking, read slowly: every
+        // line that arrives is whole, and arrived + counted lost = sent.
+        let mut fds = [0i32; 2];
+        // SAFETY: fds is a valid array of two ints for pipe2 to fill.
+        assert_eq!(
+            unsafe { libc::pipe2(fds.as_mut_ptr(), libc::O_NONBLOCK | libc::O_CLOEXEC) },
+            0
+        );
+        // SAFETY: fds[1] is an open pipe descriptor owned by this test.
+        unsafe { libc::fcntl(fds[1], libc::F_SETPIPE_SZ, 4096) };
+        use std::os::fd::FromRawFd;
+        // SAFETY: each descriptor is owned by exactly one File from here on.
+        let (r, w) = unsafe {
+            (
+                std::fs::File::from_raw_fd(fds[0]),
+                std::fs::File::from_raw_fd(fds[1]),
+            )
+        };
+        let errors = Arc::new(AtomicU64::new(0));
+        let mut out = Out {
+            file: w,
+            buf: Vec::new(),
+            errors: errors.clone(),
+        };
+        let f = CanFrame::new(0x101, false, &[1, 2, 3, 4, 5, 6, 7, 8]).unwrap();
+        let mut line = String::new();
+        let mut got = Vec::new();
+        let mut r = r;
+        let sent = 20_000u64;
+        for k in 0..sent {
+            line.clear();
+            format_line(&mut line, 1_000_000_000 + k, "can0", &f, Dir::Tx);
+            out.push(line.as_bytes());
+            if out.buf.len() >= 1000 {
+                out.flush();
+            }
+            if k % 50 == 0 {
+                let mut chunk = [0u8; 700];
+                if let Ok(n) = std::io::Read::read(&mut r, &mut chunk) {
+                    got.extend_from_slice(&chunk[..n]);
+                }
+            }
+        }
+        while out.flush() {
+            let mut chunk = [0u8; 4096];
+            if let Ok(n) = std::io::Read::read(&mut r, &mut chunk) {
+                got.extend_from_slice(&chunk[..n]);
+            }
+        }
+        drop(out);
+        let _ = std::io::Read::read_to_end(&mut r, &mut got);
+        let text = String::from_utf8(got).unwrap();
+        assert!(text.ends_with('\n'));
+        let mut arrived = 0u64;
+        for l in text.lines() {
+            assert!(
+                l.starts_with('(') && l.ends_with(" T") && l.contains("101#0102030405060708"),
+                "{l:?}"
+            );
+            arrived += 1;
+        }
+        let lost = errors.load(Ordering::Relaxed);
+        assert!(lost > 0, "the slow reader should have cost lines");
+        assert_eq!(arrived + lost, sent);
     }
 }
