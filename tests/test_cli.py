@@ -249,11 +249,11 @@ def test_iteration_cap_is_reported_on_stderr(capsys):
     assert "not converged: stopped at --max-iter 3" in capsys.readouterr().err
 
 
-def test_singular_hessian_needs_a_given_rho(capsys, tmp_path):
-    """R_a = 0 and Q blind to a's last step: H_j is singular, eq.opt_ro's rho*
-    (which needs H_j^-1) is undefined: refused naming the objective; with
-    --rho the solve matches Clarabel's first step."""
-    path = tmp_path / "singular.json"
+def _hessian_problem(tmp_path, r_a, name):
+    """Agent a with weight r_a, observed only through its integral: Q is blind to
+    a's last step, so r_a alone makes H_j definite (r_a = 0: singular)."""
+    bounds = {"lb": [-1], "ub": [1]} if r_a > 0 else {}
+    path = tmp_path / name
     path.write_text(
         json.dumps(
             {
@@ -261,16 +261,28 @@ def test_singular_hessian_needs_a_given_rho(capsys, tmp_path):
                 "A": [[1.0, 0.1], [0.0, 1.0]],
                 "x0": [0.0, 0.0],
                 "agents": [
-                    {"name": "a", "B": [[0.0], [1.0]], "R": [0.0]},
+                    {"name": "a", "B": [[0.0], [1.0]], "R": [r_a], **bounds},
                     {"name": "b", "B": [[0.0], [0.5]], "R": [0.1], "lb": [-1], "ub": [1]},
                 ],
                 "objectives": [
                     {"name": "o", "C": [[1.0, 0.0], [0.0, 1.0]], "Q": [1.0, 0.0], "ref": [1.0, 0.0]}
                 ],
-                "constraints": [{"A": {"a": [[1.0]], "b": [[1.0]]}, "b": [0.5]}],
+                **(
+                    {}
+                    if r_a > 0
+                    else {"constraints": [{"A": {"a": [[1.0]], "b": [[1.0]]}, "b": [0.5]}]}
+                ),
             }
         )
     )
+    return path
+
+
+def test_singular_hessian_needs_a_given_rho(capsys, tmp_path):
+    """R_a = 0 and Q blind to a's last step: H_j is singular, eq.opt_ro's rho*
+    (which needs H_j^-1) is undefined: refused naming the objective; with
+    --rho the solve matches Clarabel's first step."""
+    path = _hessian_problem(tmp_path, 0.0, "singular.json")
     from ampc_jax.formulations import singular_hessians
     from ampc_jax.topology import Problem
 
@@ -291,23 +303,7 @@ def test_ill_conditioned_hessian_is_not_called_singular(capsys, tmp_path):
     """R_a = 1e-13 (positive) and Q blind to a's last step: H_j is positive
     definite with a condition number above 1e12; the refusal says so instead
     of blaming R = 0."""
-    path = tmp_path / "illcond.json"
-    path.write_text(
-        json.dumps(
-            {
-                "horizon": 3,
-                "A": [[1.0, 0.1], [0.0, 1.0]],
-                "x0": [0.0, 0.0],
-                "agents": [
-                    {"name": "a", "B": [[0.0], [1.0]], "R": [1e-13], "lb": [-1], "ub": [1]},
-                    {"name": "b", "B": [[0.0], [0.5]], "R": [0.1], "lb": [-1], "ub": [1]},
-                ],
-                "objectives": [
-                    {"name": "o", "C": [[1.0, 0.0], [0.0, 1.0]], "Q": [1.0, 0.0], "ref": [1.0, 0.0]}
-                ],
-            }
-        )
-    )
+    path = _hessian_problem(tmp_path, 1e-13, "illcond.json")
     assert main(["solve", str(path), "--json"]) == 2
     err = capsys.readouterr().err
     assert "numerically singular (condition number" in err and "R_(i) singular" not in err
