@@ -191,7 +191,11 @@ def test_agent_in_no_objective():
     d = base()
     d["objectives"][0]["agents"] = ["a", "b"]
     d["objectives"][1]["agents"] = ["b"]
-    with pytest.raises(ProblemError, match=r"agents\[2\] \(c\): the agent belongs to no objective"):
+    # c influences objective z, which leaves it out: a warning before the error
+    with (
+        pytest.warns(UserWarning, match=r"objectives\[1\] \(z\): agents \['c'\] influence"),
+        pytest.raises(ProblemError, match=r"agents\[2\] \(c\): the agent belongs to no objective"),
+    ):
         Problem.from_dict(d)
 
 
