@@ -588,7 +588,9 @@ impl Bridge {
         *lock(&self.shared) = shared.clone();
 
         let opened = transport::open(&self.spec, self.cfg.bitrate)?;
-        *lock(&self.pty_path) = opened.pty_path.clone();
+        // Published only once the run is up, so a failed start leaves no
+        // path to a pty that is already closed again.
+        let pty_path = opened.pty_path.clone();
         let (log_tx, log_writer) = match &self.cfg.log_path {
             Some(p) => {
                 let (s, w) = candump::start(
@@ -670,6 +672,7 @@ impl Bridge {
             rx_stop,
             log: log_writer,
         });
+        *lock(&self.pty_path) = pty_path;
         Ok(())
     }
 
@@ -680,6 +683,9 @@ impl Bridge {
         let Some(r) = lock(&self.run).take() else {
             return Ok(());
         };
+        // The pty closes with this run; its /dev/pts/N may then be handed to
+        // another process, so the old path is no longer reported.
+        *lock(&self.pty_path) = None;
         r.shared.request_stop();
         let tx_ok = r.tx.join().is_ok();
         r.rx_stop.store(true, Ordering::Release);
@@ -761,7 +767,8 @@ impl Bridge {
         lock(&self.shared().tx).tick.trace().to_vec()
     }
 
-    /// Pseudo-terminal slave path for `slcan-pty:` (after `start`).
+    /// Pseudo-terminal slave path for `slcan-pty:` while running (`None`
+    /// before `start` and once `stop` has begun).
     pub fn pty_path(&self) -> Option<String> {
         lock(&self.pty_path).clone()
     }

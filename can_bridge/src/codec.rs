@@ -119,6 +119,37 @@ impl Signal {
     pub fn get(&self, data: &[u8]) -> f64 {
         self.to_phys(self.get_raw(data))
     }
+
+    /// Whether every raw value maps to an integer physical value (integer
+    /// factor and offset, e.g. the enum-like `Mode`).
+    pub fn is_integer_valued(&self) -> bool {
+        self.factor.fract() == 0.0 && self.offset.fract() == 0.0
+    }
+
+    /// Refuse what the DBC does not allow for this signal: a non-finite
+    /// value, a value outside `min..=max`, or a non-integral value for an
+    /// integer-valued signal (which would otherwise be rounded).
+    pub fn check(&self, value: f64) -> Result<()> {
+        if !value.is_finite() {
+            return Err(Error::Command(format!(
+                "{} = {value} is not a finite number",
+                self.name
+            )));
+        }
+        if value < self.min || value > self.max {
+            return Err(Error::Command(format!(
+                "{} = {value} is outside the signal's range {}..={}",
+                self.name, self.min, self.max
+            )));
+        }
+        if self.is_integer_valued() && value.fract() != 0.0 {
+            return Err(Error::Command(format!(
+                "{} = {value} is not an integer (the signal takes integer values {}..={})",
+                self.name, self.min, self.max
+            )));
+        }
+        Ok(())
+    }
 }
 
 /// One message of the DBC.
@@ -263,6 +294,24 @@ impl Message {
         CanFrame::new(self.id, false, &data[..self.len])
     }
 
+    /// Like [`Message::encode`], but strict about its input: the counter
+    /// must be an E2E Profile 1 alive counter (0..=14, never reduced) and
+    /// every value must pass [`Signal::check`] (DBC range, integer-valued
+    /// signals given integers).
+    pub fn encode_checked(&self, values: &[f64], counter: u8) -> Result<CanFrame> {
+        if counter > e2e::MAX_COUNTER {
+            return Err(Error::Command(format!(
+                "counter = {counter} is not an E2E Profile 1 alive counter (0..={})",
+                e2e::MAX_COUNTER
+            )));
+        }
+        let payload_signals = self.signals.get(2..).unwrap_or(&[]);
+        for (s, &v) in payload_signals.iter().zip(values) {
+            s.check(v)?;
+        }
+        self.encode(values, counter)
+    }
+
     /// Physical values of the non-E2E signals (no E2E check here).
     pub fn decode_values(&self, data: &[u8], out: &mut [f64]) {
         let payload_signals = self.signals.get(2..).unwrap_or(&[]);
@@ -398,6 +447,32 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn encode_checked_refuses_counter_range_and_fractional_integers() {
+        let ok = [1.0, 1.0, 1.0, 1.0, 1.0];
+        let f = WHEEL_TORQUE_CMD.encode_checked(&ok, 14).unwrap();
+        assert_eq!(e2e::counter_of(f.data()), Some(14));
+        for counter in [15u8, 200] {
+            let e = WHEEL_TORQUE_CMD.encode_checked(&ok, counter).unwrap_err();
+            assert!(e.message().contains(&format!("counter = {counter}")), "{e}");
+        }
+        let e = WHEEL_TORQUE_CMD
+            .encode_checked(&[0.0, 1020.0, 1.0, 1.0, 1.0], 0)
+            .unwrap_err();
+        assert!(e.message().contains("TorqueFL = 1020"), "{e}");
+        assert!(e.message().contains("-1000..=1000"), "{e}");
+        let e = WHEEL_TORQUE_CMD
+            .encode_checked(&[2.6, 1.0, 1.0, 1.0, 1.0], 0)
+            .unwrap_err();
+        assert!(e.message().contains("Mode = 2.6 is not an integer"), "{e}");
+        // Limits themselves and off-grid torques (rounded) are fine.
+        WHEEL_TORQUE_CMD
+            .encode_checked(&[3.0, -1000.0, 1000.0, 0.3, 0.25], 0)
+            .unwrap();
+        let e = STEERING_STATE.encode_checked(&[f64::NAN], 0).unwrap_err();
+        assert!(e.message().contains("not a finite number"), "{e}");
     }
 
     #[test]

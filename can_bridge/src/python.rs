@@ -6,9 +6,10 @@ use crate::bridge::{Bridge, BridgeConfig};
 use crate::codec::{Mode, ALL_MESSAGES};
 use crate::error::Error;
 use crate::safety::SafetyConfig;
-use pyo3::exceptions::PyRuntimeError;
+use pyo3::exceptions::{PyOverflowError, PyRuntimeError};
 use pyo3::prelude::*;
-use pyo3::types::{PyBool, PyBytes, PyDict, PyString};
+use pyo3::sync::PyOnceLock;
+use pyo3::types::{PyBool, PyBytes, PyDict, PyString, PyType};
 use std::path::PathBuf;
 
 /// The one mapping from error kinds to Python exception classes.
@@ -55,26 +56,68 @@ fn is_bool(obj: &Bound<'_, PyAny>) -> bool {
             .is_ok_and(|n| n == "bool" || n == "bool_")
 }
 
-/// Whether `obj` is an instance of the ABC `module.name` (false if the
-/// lookup fails).
-fn is_abc(obj: &Bound<'_, PyAny>, module: &str, name: &str) -> bool {
-    obj.py()
-        .import(module)
-        .and_then(|m| m.getattr(name))
-        .and_then(|abc| obj.is_instance(&abc))
+/// The abstract base classes the argument checks use.
+#[derive(Clone, Copy)]
+enum Abc {
+    Complex,
+    Real,
+    Mapping,
+    Set,
+}
+
+/// Whether `obj` is an instance of `abc` (false if the lookup fails). Each
+/// ABC is imported once per interpreter and cached.
+fn is_abc(obj: &Bound<'_, PyAny>, abc: Abc) -> bool {
+    static COMPLEX: PyOnceLock<Py<PyType>> = PyOnceLock::new();
+    static REAL: PyOnceLock<Py<PyType>> = PyOnceLock::new();
+    static MAPPING: PyOnceLock<Py<PyType>> = PyOnceLock::new();
+    static SET: PyOnceLock<Py<PyType>> = PyOnceLock::new();
+    let (cell, module, name) = match abc {
+        Abc::Complex => (&COMPLEX, "numbers", "Complex"),
+        Abc::Real => (&REAL, "numbers", "Real"),
+        Abc::Mapping => (&MAPPING, "collections.abc", "Mapping"),
+        Abc::Set => (&SET, "collections.abc", "Set"),
+    };
+    cell.import(obj.py(), module, name)
+        .and_then(|cls| obj.is_instance(cls.as_any()))
         .unwrap_or(false)
 }
 
+/// Why an object is not accepted as one real number.
+enum NotReal {
+    /// Not a real number at all (also a bool or a complex number).
+    Type,
+    /// A real number too large for a float (e.g. `10**400`).
+    OutOfRange,
+}
+
 /// One real number: refuses bools and complex numbers (whose `float()`
-/// would drop the imaginary part).
-fn real(item: &Bound<'_, PyAny>) -> Option<f64> {
+/// would drop the imaginary part); tells an overflowing number apart.
+fn real(item: &Bound<'_, PyAny>) -> Result<f64, NotReal> {
     if is_bool(item) {
-        return None;
+        return Err(NotReal::Type);
     }
-    if is_abc(item, "numbers", "Complex") && !is_abc(item, "numbers", "Real") {
-        return None;
+    if is_abc(item, Abc::Complex) && !is_abc(item, Abc::Real) {
+        return Err(NotReal::Type);
     }
-    item.extract().ok()
+    item.extract().map_err(|e: PyErr| {
+        if e.is_instance_of::<PyOverflowError>(item.py()) {
+            NotReal::OutOfRange
+        } else {
+            NotReal::Type
+        }
+    })
+}
+
+/// `repr(obj)` cut to a readable length (a huge integer has hundreds of digits).
+fn short_repr(obj: &Bound<'_, PyAny>) -> String {
+    let r = repr(obj);
+    if r.chars().count() <= 40 {
+        r
+    } else {
+        let head: String = r.chars().take(20).collect();
+        format!("{head}... ({} characters)", r.chars().count())
+    }
 }
 
 fn four_floats(
@@ -87,7 +130,7 @@ fn four_floats(
             "{what} must be 4 numbers (FL, FR, RL, RR), not a string"
         )));
     }
-    if is_abc(obj, "collections.abc", "Mapping") || is_abc(obj, "collections.abc", "Set") {
+    if is_abc(obj, Abc::Mapping) || is_abc(obj, Abc::Set) {
         return Err(kind(format!(
             "{what} must be an ordered sequence of 4 numbers (FL, FR, RL, RR), not a {}",
             obj.get_type()
@@ -104,11 +147,15 @@ fn four_floats(
     let mut n = 0usize;
     for item in iter {
         let item = item.map_err(|e| kind(format!("{what}: {e}")))?;
-        let v = real(&item).ok_or_else(|| {
-            kind(format!(
+        let v = real(&item).map_err(|why| match why {
+            NotReal::Type => kind(format!(
                 "{what}[{n}] = {} is not a real number",
                 repr(&item)
-            ))
+            )),
+            NotReal::OutOfRange => kind(format!(
+                "{what}[{n}] = {} is out of range (too large for a float)",
+                short_repr(&item)
+            )),
         })?;
         if let Some(slot) = out.get_mut(n) {
             *slot = v;
@@ -136,8 +183,15 @@ fn arg_f64(name: &str, obj: Option<&Bound<'_, PyAny>>, default: f64) -> Result<f
     match obj {
         None => Ok(default),
         Some(o) if o.is_none() => Ok(default),
-        Some(o) => real(o)
-            .ok_or_else(|| Error::Config(format!("{name} must be a real number, got {}", repr(o)))),
+        Some(o) => real(o).map_err(|why| match why {
+            NotReal::Type => {
+                Error::Config(format!("{name} must be a real number, got {}", repr(o)))
+            }
+            NotReal::OutOfRange => Error::Config(format!(
+                "{name} = {} is out of range (too large for a float)",
+                short_repr(o)
+            )),
+        }),
     }
 }
 
@@ -217,8 +271,14 @@ impl PyBridge {
             })?;
             let max_torque = match max_torque_nm {
                 Some(obj) if !obj.is_none() => match real(obj) {
-                    Some(v) => [v; 4],
-                    None => four_floats(obj, "max_torque_nm", Error::Config)?,
+                    Ok(v) => [v; 4],
+                    Err(NotReal::OutOfRange) => {
+                        return Err(Error::Config(format!(
+                            "max_torque_nm = {} is out of range (too large for a float)",
+                            short_repr(obj)
+                        )))
+                    }
+                    Err(NotReal::Type) => four_floats(obj, "max_torque_nm", Error::Config)?,
                 },
                 _ => SafetyConfig::default().max_torque_nm,
             };
@@ -397,7 +457,8 @@ impl PyBridge {
         })
     }
 
-    /// Pseudo-terminal slave path for `slcan-pty:` (set by `start`).
+    /// Pseudo-terminal slave path for `slcan-pty:` while running (`None`
+    /// before `start` and once `stop` has begun: the path may be reused).
     #[getter]
     fn pty_path(&self) -> Option<String> {
         self.inner.pty_path()
@@ -432,45 +493,91 @@ impl PyBridge {
 }
 
 /// Pack a DBC message with the Rust codec: `values` maps each payload signal
-/// name to its physical value; CRC and counter are filled in (E2E Profile 1).
+/// name to its physical value (`Mode` also takes its value name); CRC and the
+/// alive counter (0..=14) are filled in (E2E Profile 1). Refused with
+/// `CommandError`: a counter outside 0..=14, a missing or unknown key, a value
+/// that is not a real number, outside the DBC's range, or not integral for an
+/// integer-valued signal such as `Mode`.
 #[pyfunction]
 fn encode_message<'py>(
     py: Python<'py>,
     name: &str,
     values: &Bound<'py, PyDict>,
-    counter: u8,
+    counter: &Bound<'py, PyAny>,
 ) -> PyResult<Bound<'py, PyBytes>> {
     let m = ALL_MESSAGES
         .iter()
         .find(|m| m.name == name)
         .ok_or_else(|| err(py, Error::Config(format!("unknown message {name:?}"))))?;
-    let mut v = Vec::new();
-    for s in m.signals.iter().skip(2) {
-        let item = values.get_item(s.name)?.ok_or_else(|| {
-            err(
-                py,
-                Error::Command(format!("{name}: missing signal {}", s.name)),
-            )
+    let payload = m.signals.get(2..).unwrap_or(&[]);
+    let refuse = |msg: String| err(py, Error::Command(msg));
+    let counter_value = if is_bool(counter) {
+        None
+    } else {
+        counter.extract::<i64>().ok()
+    };
+    let counter = counter_value
+        .and_then(|c| u8::try_from(c).ok())
+        .filter(|c| *c <= crate::e2e::MAX_COUNTER)
+        .ok_or_else(|| {
+            refuse(format!(
+                "counter = {} is not an E2E Profile 1 alive counter (an integer in 0..={})",
+                short_repr(counter),
+                crate::e2e::MAX_COUNTER
+            ))
         })?;
-        let x: f64 = if s.name == "Mode" {
-            match item.extract::<String>() {
-                Ok(label) => {
-                    let mode = [Mode::Active, Mode::Hold, Mode::Safe, Mode::Fault]
-                        .into_iter()
-                        .find(|m| m.name() == label)
-                        .ok_or_else(|| {
-                            err(py, Error::Command(format!("unknown Mode {label:?}")))
-                        })?;
-                    f64::from(mode as u8)
-                }
-                Err(_) => item.extract()?,
-            }
+    for key in values.keys().iter() {
+        let known = key
+            .extract::<String>()
+            .is_ok_and(|k| payload.iter().any(|s| s.name == k));
+        if !known {
+            let names: Vec<&str> = payload.iter().map(|s| s.name).collect();
+            return Err(refuse(format!(
+                "{name} has no signal {} to set (its signals: {}; CRC and Counter are filled in)",
+                short_repr(&key),
+                names.join(", ")
+            )));
+        }
+    }
+    let mut v = Vec::new();
+    for s in payload {
+        let item = values
+            .get_item(s.name)?
+            .ok_or_else(|| refuse(format!("{name}: missing signal {}", s.name)))?;
+        let x: f64 = if s.name == "Mode" && item.is_instance_of::<PyString>() {
+            let label: String = item.extract()?;
+            let modes = [Mode::Active, Mode::Hold, Mode::Safe, Mode::Fault];
+            let mode = modes
+                .into_iter()
+                .find(|m| m.name() == label)
+                .ok_or_else(|| {
+                    let names: Vec<&str> = modes.iter().map(|m| m.name()).collect();
+                    refuse(format!(
+                        "unknown Mode {} (one of {}, or 0..=3)",
+                        short_repr(&item),
+                        names.join(", ")
+                    ))
+                })?;
+            f64::from(mode as u8)
         } else {
-            item.extract()?
+            real(&item).map_err(|why| match why {
+                NotReal::Type => refuse(format!(
+                    "{name}: {} = {} is not a real number",
+                    s.name,
+                    short_repr(&item)
+                )),
+                NotReal::OutOfRange => refuse(format!(
+                    "{} = {} is outside the signal's range {}..={}",
+                    s.name,
+                    short_repr(&item),
+                    s.min,
+                    s.max
+                )),
+            })?
         };
         v.push(x);
     }
-    let f = m.encode(&v, counter).map_err(|e| err(py, e))?;
+    let f = m.encode_checked(&v, counter).map_err(|e| err(py, e))?;
     Ok(PyBytes::new(py, f.data()))
 }
 

@@ -118,4 +118,6 @@ fn bridge_over_pty_end_to_end() {
     assert!(!s.running);
     assert_eq!(s.tx_errors, 0);
     assert!(s.tick.ticks >= 20);
+    // The closed pty's path may be reused by another pty: no longer reported.
+    assert_eq!(bridge.pty_path(), None);
 }

@@ -111,3 +111,62 @@ def test_encode_message_refuses_bad_input() -> None:
         can_bridge.encode_message("SteeringState", {}, 0)
     with pytest.raises(can_bridge.ConfigError, match="unknown message"):
         can_bridge.encode_message("Nope", {}, 0)
+
+
+_TORQUE = {"Mode": "active", "TorqueFL": 1, "TorqueFR": 1, "TorqueRL": 1, "TorqueRR": 1}
+
+
+@pytest.mark.parametrize("counter", [15, 200, -1, 300, pytest.param(10**400, id="10**400")])
+def test_encode_message_refuses_counter_outside_profile1_range(counter: int) -> None:
+    with pytest.raises(can_bridge.CommandError, match=rf"counter = {str(counter)[:5]}.* 0\.\.=14"):
+        can_bridge.encode_message("WheelTorqueCmd", _TORQUE, counter)
+
+
+@pytest.mark.parametrize("counter", [True, 3.0, "3", None])
+def test_encode_message_refuses_non_integer_counter(counter) -> None:
+    with pytest.raises(can_bridge.CommandError, match="counter = .* alive counter"):
+        can_bridge.encode_message("WheelTorqueCmd", _TORQUE, counter)
+
+
+def test_encode_message_accepts_every_profile1_counter() -> None:
+    for counter in range(15):
+        data = can_bridge.encode_message("WheelTorqueCmd", _TORQUE, counter)
+        assert data[1] & 0x0F == counter
+        assert data == protect("WheelTorqueCmd", {**_TORQUE, "Mode": 0}, counter)
+
+
+@pytest.mark.parametrize(
+    ("name", "values", "match"),
+    [
+        ("WheelTorqueCmd", {**_TORQUE, "TorqueFL": 1020}, r"TorqueFL = 1020 .*range -1000\.\.=1000"),
+        ("WheelTorqueCmd", {**_TORQUE, "TorqueRR": -1000.5}, r"TorqueRR = -1000.5 .*range"),
+        ("WheelTorqueCmd", {**_TORQUE, "TorqueFR": 10**400}, r"TorqueFR = 1000.*range"),
+        ("SteeringState", {"SteeringAngle": 3.3}, r"SteeringAngle = 3.3 .*range -3.2768\.\.=3.2767"),
+        ("WheelTorqueCmd", {**_TORQUE, "Mode": 4}, r"Mode = 4 .*range 0\.\.=3"),
+        ("WheelTorqueCmd", {**_TORQUE, "Mode": 2.6}, r"Mode = 2.6 is not an integer"),
+        ("WheelTorqueCmd", {**_TORQUE, "Mode": 0.5}, r"Mode = 0.5 is not an integer"),
+        ("WheelTorqueCmd", {**_TORQUE, "Mode": "ACTIVE"}, r"unknown Mode 'ACTIVE'"),
+        ("WheelTorqueCmd", {**_TORQUE, "TorqueFL": "1"}, r"TorqueFL = '1' is not a real number"),
+        ("WheelTorqueCmd", {**_TORQUE, "TorqueFL": 1j}, r"TorqueFL = 1j is not a real number"),
+    ],
+)
+def test_encode_message_refuses_values_the_dbc_does_not_allow(name, values, match) -> None:
+    with pytest.raises(can_bridge.CommandError, match=match):
+        can_bridge.encode_message(name, values, 0)
+
+
+@pytest.mark.parametrize("extra", [{"Bogus": 5}, {"CRC": 7}, {"Counter": 3}, {1: 2}])
+def test_encode_message_refuses_unknown_keys(extra: dict) -> None:
+    key = next(iter(extra))
+    with pytest.raises(
+        can_bridge.CommandError,
+        match=rf"WheelTorqueCmd has no signal {key!r} .*Mode, TorqueFL, TorqueFR, TorqueRL, TorqueRR",
+    ):
+        can_bridge.encode_message("WheelTorqueCmd", {**_TORQUE, **extra}, 0)
+
+
+def test_encode_message_accepts_limits_and_integral_floats() -> None:
+    values = {"Mode": 3.0, "TorqueFL": -1000, "TorqueFR": 1000.0, "TorqueRL": 0.3, "TorqueRR": 0.25}
+    assert can_bridge.encode_message("WheelTorqueCmd", values, 14) == protect(
+        "WheelTorqueCmd", values, 14
+    )

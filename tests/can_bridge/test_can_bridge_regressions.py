@@ -271,7 +271,10 @@ def test_set_command_refuses_numpy_complex_and_bool_and_bool_seq() -> None:
     [
         ({"period_ms": "50"}, "period_ms must be a real number"),
         ({"period_ms": True}, "period_ms must be a real number"),
-        ({"period_ms": 10**400}, "period_ms must be a real number"),
+        ({"period_ms": 10**400}, r"period_ms = 1000.* is out of range"),
+        ({"hold_after_ms": -(10**400)}, r"hold_after_ms = -1000.* is out of range"),
+        ({"max_torque_nm": 10**400}, r"max_torque_nm = 1000.* is out of range"),
+        ({"max_torque_nm": [1, 2, 3, 10**400]}, r"max_torque_nm\[3\] = 1000.* is out of range"),
         ({"max_rate_nm_per_tick": "x"}, "max_rate_nm_per_tick must be a real number"),
         ({"hold_after_ms": [1]}, "hold_after_ms must be a real number"),
         ({"max_torque_nm": True}, r"max_torque_nm"),
@@ -290,6 +293,26 @@ def test_set_command_refuses_numpy_complex_and_bool_and_bool_seq() -> None:
 def test_constructor_type_and_range_errors_name_the_argument(kwargs: dict, match: str) -> None:
     with pytest.raises(can_bridge.ConfigError, match=match):
         can_bridge.Bridge("slcan-pty:", **kwargs)
+
+
+def test_overflowing_torque_is_out_of_range_not_a_type_error() -> None:
+    b = can_bridge.Bridge("slcan-pty:")
+    with pytest.raises(can_bridge.CommandError, match=r"torques\[2\] = 1000.* is out of range"):
+        b.set_command([1.0, 2.0, 10**400, 4.0], 1)
+    b.set_command((1.0, 2.0, 3.0, 4.0), 1)  # nothing was accepted before
+
+
+def test_pty_path_is_none_once_stopped() -> None:
+    # The closed /dev/pts/N can be handed to another pty: never report it.
+    b = can_bridge.Bridge("slcan-pty:", period_ms=10)
+    b.start()
+    path = b.pty_path
+    assert path is not None and path.startswith("/dev/")
+    b.stop()
+    assert b.pty_path is None
+    with b:
+        assert b.pty_path is not None
+    assert b.pty_path is None
 
 
 def test_constructor_still_accepts_the_usual_types(tmp_path) -> None:
