@@ -138,10 +138,18 @@ def test_encode_message_accepts_every_profile1_counter() -> None:
 @pytest.mark.parametrize(
     ("name", "values", "match"),
     [
-        ("WheelTorqueCmd", {**_TORQUE, "TorqueFL": 1020}, r"TorqueFL = 1020 .*range -1000\.\.=1000"),
+        (
+            "WheelTorqueCmd",
+            {**_TORQUE, "TorqueFL": 1020},
+            r"TorqueFL = 1020 .*range -1000\.\.=1000",
+        ),
         ("WheelTorqueCmd", {**_TORQUE, "TorqueRR": -1000.5}, r"TorqueRR = -1000.5 .*range"),
         ("WheelTorqueCmd", {**_TORQUE, "TorqueFR": 10**400}, r"TorqueFR = 1000.*range"),
-        ("SteeringState", {"SteeringAngle": 3.3}, r"SteeringAngle = 3.3 .*range -3.2768\.\.=3.2767"),
+        (
+            "SteeringState",
+            {"SteeringAngle": 3.3},
+            r"SteeringAngle = 3.3 .*range -3.2768\.\.=3.2767",
+        ),
         ("WheelTorqueCmd", {**_TORQUE, "Mode": 4}, r"Mode = 4 .*range 0\.\.=3"),
         ("WheelTorqueCmd", {**_TORQUE, "Mode": 2.6}, r"Mode = 2.6 is not an integer"),
         ("WheelTorqueCmd", {**_TORQUE, "Mode": 0.5}, r"Mode = 0.5 is not an integer"),
