@@ -278,6 +278,7 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("can_bridge_fifo_{}", std::process::id()));
         let c = std::ffi::CString::new(dir.to_str().unwrap()).unwrap();
         let _ = std::fs::remove_file(&dir);
+        // SAFETY: c is a valid NUL-terminated path.
         assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
         let (done_tx, done_rx) = std::sync::mpsc::channel();
         let p = dir.clone();

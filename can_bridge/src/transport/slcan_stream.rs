@@ -326,6 +326,21 @@ mod tests {
         fd
     }
 
+    /// A pty with a peer that has sent `O` (open) and the source has seen it.
+    fn opened_by_a_peer() -> (Box<dyn Sink>, Box<dyn Source>, Fd) {
+        let Opened {
+            sink,
+            mut source,
+            pty_path,
+        } = open_pty().unwrap();
+        let peer = open_slave(&pty_path.unwrap());
+        peer.write(b"O\r").unwrap();
+        for _ in 0..5 {
+            let _ = source.recv(10).unwrap();
+        }
+        (sink, source, peer)
+    }
+
     fn read_until(fd: &Fd, want: usize) -> Vec<u8> {
         let mut out = vec![];
         for _ in 0..100 {
@@ -377,16 +392,7 @@ mod tests {
 
     #[test]
     fn pty_close_waits_for_a_slow_peer_to_read_the_last_frames() {
-        let Opened {
-            mut sink,
-            mut source,
-            pty_path,
-        } = open_pty().unwrap();
-        let peer = open_slave(&pty_path.unwrap());
-        peer.write(b"O\r").unwrap();
-        for _ in 0..5 {
-            let _ = source.recv(10).unwrap();
-        }
+        let (mut sink, source, peer) = opened_by_a_peer();
         assert_eq!(read_until(&peer, 1), b"\r");
         let f = CanFrame::new(0x101, false, &[0; 8]).unwrap();
         for _ in 0..3 {
@@ -427,16 +433,7 @@ mod tests {
 
     #[test]
     fn pty_close_wait_is_bounded_without_a_reader() {
-        let Opened {
-            mut sink,
-            mut source,
-            pty_path,
-        } = open_pty().unwrap();
-        let peer = open_slave(&pty_path.unwrap());
-        peer.write(b"O\r").unwrap();
-        for _ in 0..5 {
-            let _ = source.recv(10).unwrap();
-        }
+        let (mut sink, _source, peer) = opened_by_a_peer(); // the master stays open
         let f = CanFrame::new(0x101, false, &[0; 8]).unwrap();
         assert_eq!(sink.send(&f).unwrap(), Sent::Yes);
         // Nobody reads: close gives up after the bounded wait.

@@ -503,6 +503,7 @@ mod tests {
     fn full_send_buffer_drops_whole_frames_never_cuts_one() {
         use std::os::fd::AsRawFd;
         fn set_buf(fd: i32, opt: i32, n: i32) {
+            // SAFETY: fd is an open socket; the option value is one valid i32.
             let rc = unsafe {
                 libc::setsockopt(
                     fd,
