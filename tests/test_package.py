@@ -68,3 +68,26 @@ def test_small_while_loop_threshold_flag():
     )
     assert _run(probe) == "True"
     assert _run(probe, AMPC_KEEP_XLA_FLAGS="1") == "False"
+
+
+def _readme_python_block() -> str:
+    from pathlib import Path
+
+    text = (Path(__file__).parents[1] / "README.md").read_text()
+    section = text[text.index("### Python\n") :]
+    start = section.index("```python\n") + len("```python\n")
+    return section[start : section.index("```", start)]
+
+
+@pytest.mark.timeout(300)
+def test_readme_python_example_runs_and_agrees_with_clarabel():
+    """The README's Python block, run as it stands in a fresh interpreter."""
+    out = _run(_readme_python_block())
+    lines = {line.split(" ", 1)[0]: line for line in out.splitlines()}
+    assert "groups: [['drive', 'brake'], ['vector', 'brake']]" in out
+    assert lines["status"].startswith("status 0 ")
+    err = float(out.split("max |u0 - Clarabel|")[1].split()[0])
+    assert err < 1e-5, out
+    assert "all solved True" in out
+    before, after = (float(v) for v in lines["rho"].split("loss")[1].split("->"))
+    assert after < 1e-3 * before, out
