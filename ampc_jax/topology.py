@@ -105,7 +105,7 @@ def _array(value: Any, field_name: str) -> np.ndarray:
     return arr
 
 
-def _bound(value: Any, field_name: str, n: int, side: str) -> np.ndarray:
+def _bound(value: Any, field_name: str, n: int, side: str, hint: str = "") -> np.ndarray:
     """Bounds may be -inf (``side="lower"``) or +inf (upper): no row; never
     NaN, and never the infinity that no input can satisfy."""
     bad = _non_number(value)
@@ -121,7 +121,7 @@ def _bound(value: Any, field_name: str, n: int, side: str) -> np.ndarray:
     if arr.ndim == 0:
         arr = np.full(n, float(arr))
     if arr.shape != (n,):
-        raise ProblemError(f"{field_name}: expected {n} numbers, got shape {arr.shape}")
+        raise ProblemError(f"{field_name}: expected {n} numbers, got shape {arr.shape}{hint}")
     if np.any(np.isnan(arr)):
         raise ProblemError(f"{field_name}: contains NaN; use a number or +-inf (no bound)")
     wrong = np.inf if side == "lower" else -np.inf
@@ -151,20 +151,26 @@ def _dims(rows: int | None, cols: int | None) -> str:
     return f"{rows if rows is not None else 'n'} x {cols if cols is not None else 'm'}"
 
 
-def _weight(value: Any, field_name: str, n: int, *, definite: bool) -> np.ndarray:
-    """A weight given as an n x n symmetric matrix or a length-n diagonal."""
+def _weight(
+    value: Any, field_name: str, n: int, *, definite: bool, hint: str = ""
+) -> np.ndarray:
+    """A weight given as an n x n symmetric matrix or a length-n diagonal.
+
+    ``hint`` ends a shape error with where n comes from (e.g. the columns of B)."""
     arr = _array(value, field_name)
     if arr.ndim == 0:
         arr = np.full(n, float(arr))
     if arr.ndim == 1:
         if arr.shape != (n,):
             raise ProblemError(
-                f"{field_name}: expected {n} x {n} or a diagonal of length {n}, got {arr.shape}"
+                f"{field_name}: expected {n} x {n} or a diagonal of length {n}, "
+                f"got {arr.shape}{hint}"
             )
         arr = np.diag(arr)
     elif arr.shape != (n, n):
         raise ProblemError(
-            f"{field_name}: expected {n} x {n} or a diagonal of length {n}, got shape {arr.shape}"
+            f"{field_name}: expected {n} x {n} or a diagonal of length {n}, "
+            f"got shape {arr.shape}{hint}"
         )
     scale = max(1.0, float(np.max(np.abs(arr))))
     if not np.allclose(arr, arr.T, rtol=1e-9, atol=1e-12 * scale):
@@ -190,7 +196,7 @@ def _is_singular(R: np.ndarray) -> bool:
 
 
 def _per_step(
-    value: Any, field_name: str, n: int, horizon: int, default: float = 0.0
+    value: Any, field_name: str, n: int, horizon: int, default: float = 0.0, hint: str = ""
 ) -> np.ndarray:
     """A vector of length n held over the horizon, or an N_p x n sequence."""
     if value is None:
@@ -201,12 +207,12 @@ def _per_step(
     if arr.ndim == 1:
         if arr.shape != (n,):
             raise ProblemError(
-                f"{field_name}: expected {n} numbers or a {horizon} x {n} sequence, got {arr.shape}"
+                f"{field_name}: expected {n} numbers or a {horizon} x {n} sequence, got {arr.shape}{hint}"
             )
         return np.tile(arr, (horizon, 1))
     if arr.shape != (horizon, n):
         raise ProblemError(
-            f"{field_name}: expected {n} numbers or a {horizon} x {n} sequence, got {arr.shape}"
+            f"{field_name}: expected {n} numbers or a {horizon} x {n} sequence, got {arr.shape}{hint}"
         )
     return arr
 
@@ -404,9 +410,10 @@ class Problem:
                     f"agents[{i}].B ({name}): expected an {nx} x n_u matrix, got shape {B.shape}"
                 )
             nu = B.shape[1]
-            R = _weight(a.R, f"agents[{i}].R ({name})", nu, definite=False)
-            lb = _bound(a.lb, f"agents[{i}].lb ({name})", nu, "lower")
-            ub = _bound(a.ub, f"agents[{i}].ub ({name})", nu, "upper")
+            hint = f" (n_u = {nu}: the columns of agents[{i}].B)"
+            R = _weight(a.R, f"agents[{i}].R ({name})", nu, definite=False, hint=hint)
+            lb = _bound(a.lb, f"agents[{i}].lb ({name})", nu, "lower", hint)
+            ub = _bound(a.ub, f"agents[{i}].ub ({name})", nu, "upper", hint)
             bad = np.nonzero(lb > ub)[0]
             if bad.size:
                 k = int(bad[0])
@@ -440,8 +447,9 @@ class Problem:
                     f"objectives[{j}].C ({name}): expected an n_y x {nx} matrix, got shape {C.shape}"
                 )
             ny = C.shape[0]
-            Q = _weight(o.Q, f"objectives[{j}].Q ({name})", ny, definite=False)
-            ref = _per_step(o.ref, f"objectives[{j}].ref ({name})", ny, horizon)
+            hint = f" (n_y = {ny}: the rows of objectives[{j}].C)"
+            Q = _weight(o.Q, f"objectives[{j}].Q ({name})", ny, definite=False, hint=hint)
+            ref = _per_step(o.ref, f"objectives[{j}].ref ({name})", ny, horizon, hint=hint)
             if o.agents is None:
                 group = tuple(i for i, B in enumerate(Bs) if _influences(C, powers, B))
                 if not group:

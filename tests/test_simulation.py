@@ -55,7 +55,8 @@ def test_cruise_closed_loop_finite_and_bounded(cruise_run):
     lg = res.log
     assert lg.t.shape == (40,)
     _check_bounds(res)
-    assert np.all(lg.status == 0) or np.all(np.isin(lg.status, (0, 1)))
+    # every step converges to the controller's tolerance (max_iter is never reached)
+    assert np.all(lg.status == 0), lg.status
     assert int(np.sum(lg.fallback)) == 0
     # the controller tracks speed: v_ref is 18 m/s for the first second
     assert abs(float(lg.v_x[19]) - 18.0) < 0.5
@@ -164,20 +165,22 @@ def test_float32_closed_loop():
     assert np.all(np.isfinite(res.log.torques))
 
 
-@pytest.mark.slow
 @pytest.mark.timeout(300)
-def test_walkthrough_notebook_executes():
+def test_walkthrough_notebook_executes(tmp_path):
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient")
     from pathlib import Path
 
     path = Path(__file__).parents[1] / "notebooks" / "cruise_control_walkthrough.ipynb"
     nb = nbformat.read(path, as_version=4)
-    nbclient.NotebookClient(nb, timeout=240, kernel_name="python3").execute(cwd=str(path.parent))
+    # run where its figures may be written (walkthrough_figures/ in the working directory)
+    nbclient.NotebookClient(nb, timeout=240, kernel_name="python3").execute(cwd=str(tmp_path))
     text = "".join(
         o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
     )
     assert "e_sub_p95" in text and "yaw_rms_focus" in text
+    figures = sorted(p.name for p in (tmp_path / "walkthrough_figures").glob("*.png"))
+    assert figures == ["convergence.png", "vehicle_response.png", "wheel_torques.png", "yaw_error.png"]
 
 
 # --------------------------------------------------------------------------- solver options

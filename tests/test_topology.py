@@ -187,6 +187,39 @@ def test_bad_input_names_the_field(path, value, message):
         Problem.from_dict(mutate(path, value))
 
 
+@pytest.mark.parametrize(
+    ("path", "value", "message"),
+    [
+        # B of agent b widened to 3 columns: R, lb and ub (2 entries) no longer fit
+        (
+            ("agents", 1, "B"),
+            [[0.0] * 3, [0.5, 0.0, 0.0], [0.0, 1.0, 0.0]],
+            r"agents\[1\]\.R \(b\)",
+        ),
+        (("objectives", 0, "C"), [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], r"objectives\[0\]\.Q \(pos\)"),
+    ],
+)
+def test_size_error_says_where_the_size_comes_from(path, value, message):
+    """A weight or bound that no longer fits after B or C changed says which
+    field set its size (it is the consistent one that is reported wrong)."""
+    with pytest.raises(ProblemError, match=message) as info:
+        Problem.from_dict(mutate(path, value))
+    text = str(info.value)
+    if path[0] == "agents":
+        assert "(n_u = 3: the columns of agents[1].B)" in text
+    else:
+        assert "(n_y = 2: the rows of objectives[0].C)" in text
+
+
+def test_bound_and_reference_size_errors_name_their_source():
+    d = mutate(("agents", 1, "lb"), [-1, -1, -1])
+    with pytest.raises(ProblemError, match=r"agents\[1\]\.lb \(b\).*n_u = 2: the columns"):
+        Problem.from_dict(d)
+    d = mutate(("objectives", 1, "ref"), [0.5, 0.5])
+    with pytest.raises(ProblemError, match=r"objectives\[1\]\.ref \(z\).*n_y = 1: the rows"):
+        Problem.from_dict(d)
+
+
 def test_agent_in_no_objective():
     d = base()
     d["objectives"][0]["agents"] = ["a", "b"]

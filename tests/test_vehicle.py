@@ -143,7 +143,15 @@ def test_literal_flag_traced():
         lambda lit: V.cruise_control_model(m, 0.05, 15.0, 1.0, P, CruiseSettings(literal=lit)).w
     )
     w_true = V.cruise_control_model(m, 0.05, 15.0, 1.0, P, CruiseSettings(literal=True)).w
-    np.testing.assert_allclose(f(True), w_true)
+    w_false = V.cruise_control_model(m, 0.05, 15.0, 1.0, P, CruiseSettings(literal=False)).w
+    # both values of the traced flag select their own form (one compiled function)
+    np.testing.assert_allclose(f(True), w_true, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(f(False), w_false, rtol=1e-12, atol=1e-15)
+    # and the forms differ by the coupling correction (NOTES item 9), so a flag
+    # ignored under tracing could not pass both lines above
+    np.testing.assert_allclose(
+        w_false - w_true, DT * np.array([-0.2 * 0.3, 0.2 * 15.0, 0.0]), rtol=1e-12, atol=1e-15
+    )
 
 
 # --------------------------------------------------------------------------- stability model

@@ -49,6 +49,9 @@ def test_socketcan_runtime_on_vcan0() -> None:
             can_id = int.from_bytes(frame[:4], "little")
             chk.add(can_id & 0x1FFFFFFF, bool(can_id & 0x80000000), frame[8 : 8 + frame[4]])
     rx.close()
+    # the command reaches the bus: the last frames carry it, in active mode
+    assert chk.frames[-1]["mode"] == "active"
+    assert chk.frames[-1]["torques"] == (1.0, 2.0, 3.0, 4.0), chk.frames[-3:]
 
 
 @pytest.mark.skipif(PROBLEM is None, reason="this kernel supports SocketCAN")
