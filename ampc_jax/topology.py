@@ -151,9 +151,7 @@ def _dims(rows: int | None, cols: int | None) -> str:
     return f"{rows if rows is not None else 'n'} x {cols if cols is not None else 'm'}"
 
 
-def _weight(
-    value: Any, field_name: str, n: int, *, definite: bool, hint: str = ""
-) -> np.ndarray:
+def _weight(value: Any, field_name: str, n: int, *, definite: bool, hint: str = "") -> np.ndarray:
     """A weight given as an n x n symmetric matrix or a length-n diagonal.
 
     ``hint`` ends a shape error with where n comes from (e.g. the columns of B)."""

@@ -11,10 +11,12 @@ usual batch-first layout and, where it applies, batch-last (the cases in the
 minor, SIMD, dimension)::
 
     taskset -c 1 python bench/bench_batched_layout.py
+    python bench/bench_batched_layout.py --smoke   # batch 64, 3 repeats: a smoke run
 """
 
 from __future__ import annotations
 
+import argparse
 import time
 from collections.abc import Callable
 from typing import Any
@@ -28,9 +30,10 @@ import ampc_jax  # noqa: F401  (the package's XLA flags, set before the CPU back
 jax.config.update("jax_enable_x64", True)
 
 B, N = 4096, 40
+SMOKE_B, SMOKE_REPS = 64, 3
 
 
-def per_case_us(f: Callable, *args: Any, reps: int = 20) -> float:
+def per_case_us(f: Callable, *args: Any, reps: int = 20, batch: int = B) -> float:
     """Median wall time of the compiled ``f(*args)`` per case, in us."""
     g = jax.jit(f)
     jax.block_until_ready(g(*args))
@@ -39,7 +42,7 @@ def per_case_us(f: Callable, *args: Any, reps: int = 20) -> float:
         t0 = time.perf_counter()
         jax.block_until_ready(g(*args))
         times.append(time.perf_counter() - t0)
-    return float(np.median(times)) / B * 1e6
+    return float(np.median(times)) / batch * 1e6
 
 
 def matvec_first(M: Any, x: Any) -> Any:
@@ -95,12 +98,24 @@ def gram_last(Y: Any) -> Any:
     return (Y[:, :, None, :] * Y[:, None, :, :]).sum(0)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument(
+        "--smoke",
+        action="store_true",
+        help=f"batch {SMOKE_B}, {SMOKE_REPS} repeats: the same programs, a quick check",
+    )
+    args = ap.parse_args(argv)
+    b, reps = (SMOKE_B, SMOKE_REPS) if args.smoke else (B, 20)
+
+    def us(f: Callable, *a: Any) -> float:
+        return per_case_us(f, *a, reps=reps, batch=b)
+
     rng = np.random.default_rng(0)
-    M = rng.standard_normal((B, N, N))
+    M = rng.standard_normal((b, N, N))
     M = M @ M.transpose(0, 2, 1) + N * np.eye(N)  # SPD
-    x = rng.standard_normal((B, N))
-    Y = rng.standard_normal((B, 10, N))
+    x = rng.standard_normal((b, N))
+    Y = rng.standard_normal((b, 10, N))
     first = (jnp.asarray(M), jnp.asarray(x), jnp.asarray(Y))
     last = (
         jnp.asarray(M.transpose(1, 2, 0)),
@@ -113,14 +128,14 @@ def main() -> None:
         ("inverse by symmetric sweeps", sweep_inverse_first, sweep_inverse_last, (0,)),
         ("Gram matrix Y'Y (10 x 40 Y)", gram_first, gram_last, (2,)),
     ]
-    print(f"jax {jax.__version__}; us per case, batch {B}, {N} x {N}, float64")
+    print(f"jax {jax.__version__}; us per case, batch {b}, {N} x {N}, float64")
     print(f"{'piece':<32}{'batch first':>12}{'batch last':>12}")
     for name, f_first, f_last, which in rows:
-        a = per_case_us(f_first, *(first[i] for i in which))
-        b = per_case_us(f_last, *(last[i] for i in which))
-        print(f"{name:<32}{a:>12.3f}{b:>12.3f}")
-    print(f"{'LAPACK inverse':<32}{per_case_us(jnp.linalg.inv, first[0]):>12.3f}")
-    print(f"{'LAPACK Cholesky':<32}{per_case_us(jnp.linalg.cholesky, first[0]):>12.3f}")
+        t_first = us(f_first, *(first[i] for i in which))
+        t_last = us(f_last, *(last[i] for i in which))
+        print(f"{name:<32}{t_first:>12.3f}{t_last:>12.3f}")
+    print(f"{'LAPACK inverse':<32}{us(jnp.linalg.inv, first[0]):>12.3f}")
+    print(f"{'LAPACK Cholesky':<32}{us(jnp.linalg.cholesky, first[0]):>12.3f}")
 
 
 if __name__ == "__main__":

@@ -17,11 +17,14 @@ warm started from its own previous solution):
   the next warm state and (status, iterations) returned.
 
 Usage: ``taskset -c 1 python bench/bench_call_overhead.py [SCENARIO ...]``
-(default: the three closed-loop scenarios).
+(default: the three closed-loop scenarios). ``--smoke``: a quick check of the
+same code on the first scenario (or the ones named), 1 s of closed loop and 3
+interleaved calls per step, without the loop's shadow solver (unused here).
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from typing import Any
@@ -46,6 +49,7 @@ jax.config.update("jax_enable_x64", True)
 
 SCENARIOS = ("cruise_lane_change", "stability_launch_brake", "stability_dlc")
 REPEATS = 25
+SMOKE_DURATION, SMOKE_REPEATS = 1.0, 3  # s of closed loop, calls per step
 
 
 def _noop_like(solver: Any, d: Any, w: Any) -> Any:
@@ -69,9 +73,10 @@ def _packed(solver: Any, template: Any, shift: int) -> Any:
     return f
 
 
-def run(name: str) -> dict[str, float]:
-    cfg = config_for(name)
-    res = simulate(name, cfg)
+def run(name: str, repeats: int = REPEATS, duration: float | None = None) -> dict[str, float]:
+    # a smoke run (``duration`` given) skips the loop's shadow solver, which is not used here
+    cfg = config_for(name) if duration is None else config_for(name, shadow=False)
+    res = simulate(name, cfg, duration=duration)
     log = res.log
     T = build_topology(cfg)[0]
     le = local_explicit_solver(cfg, T)
@@ -127,7 +132,7 @@ def run(name: str) -> dict[str, float]:
         acc: dict[tuple, list] = {key: [] for key in fns}
         for f, kind in fns.values():
             jax.block_until_ready(f(*args(kind, k)))
-        for _ in range(REPEATS):
+        for _ in range(repeats):
             for key, (f, kind) in fns.items():
                 a = args(kind, k)
                 t0 = time.perf_counter()
@@ -148,16 +153,27 @@ def run(name: str) -> dict[str, float]:
 
 
 def main(argv: list[str]) -> int:
-    names = argv or list(SCENARIOS)
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("scenarios", nargs="*", metavar="SCENARIO", help="default: all three")
+    ap.add_argument(
+        "--smoke",
+        action="store_true",
+        help=f"{SMOKE_DURATION:g} s of closed loop, {SMOKE_REPEATS} calls per step, "
+        "the first scenario unless named",
+    )
+    args = ap.parse_args(argv)
+    names = args.scenarios or list(SCENARIOS[:1] if args.smoke else SCENARIOS)
+    repeats = SMOKE_REPEATS if args.smoke else REPEATS
+    duration = SMOKE_DURATION if args.smoke else None
     print(
-        f"jax {jax.__version__}; medians over every other logged step, {REPEATS} interleaved calls each"
+        f"jax {jax.__version__}; medians over every other logged step, {repeats} interleaved calls each"
     )
     print(
         "| scenario | LE full / no-op / packed (us) | int. full / no-op / packed (us) | r_time full | packed | full minus no-op |"
     )
     print("| --- | --- | --- | --- | --- | --- |")
     for name in names:
-        o = run(name)
+        o = run(name, repeats, duration)
         print(
             f"| {name} | {o['LE full']:.1f} / {o['LE no-op']:.1f} / {o['LE packed']:.1f} | "
             f"{o['int full']:.1f} / {o['int no-op']:.1f} / {o['int packed']:.1f} | "

@@ -16,6 +16,7 @@ that graph and prints the most thunks waiting at once::
 
     python bench/bench_thunk_graph.py            # all four
     python bench/bench_thunk_graph.py --anderson 0
+    python bench/bench_thunk_graph.py --smoke   # the cruise example only
 
 A "max waiting" above 8 means the step splits onto the pool. The replay is a
 model of ``ThunkExecutor::Execute`` (jaxlib 0.10, XLA's
@@ -30,6 +31,8 @@ import os
 import re
 import subprocess
 import sys
+
+SCENARIOS = ("cruise_lane_change", "stability_dlc")
 
 CHILD = r"""
 import sys
@@ -107,10 +110,13 @@ def max_waiting(nodes: list[tuple[str, list[str]]]) -> tuple[int, int]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--anderson", default="default", help="memory, or 'default'")
+    ap.add_argument(
+        "--smoke", action="store_true", help=f"a quick check: {SCENARIOS[0]} (both solvers) only"
+    )
     args = ap.parse_args()
     env = dict(os.environ, TF_CPP_VMODULE="thunk_executor=6", TF_CPP_MIN_LOG_LEVEL="0")
     print(f"{'scenario':<24}{'solver':<8}{'thunks':>7}{'sources':>9}{'max waiting':>13}  verdict")
-    for scenario in ("cruise_lane_change", "stability_dlc"):
+    for scenario in SCENARIOS[:1] if args.smoke else SCENARIOS:
         for kind in ("le", "ia"):
             out = subprocess.run(
                 [sys.executable, "-c", CHILD, scenario, kind, args.anderson],

@@ -180,7 +180,12 @@ def test_walkthrough_notebook_executes(tmp_path):
     )
     assert "e_sub_p95" in text and "yaw_rms_focus" in text
     figures = sorted(p.name for p in (tmp_path / "walkthrough_figures").glob("*.png"))
-    assert figures == ["convergence.png", "vehicle_response.png", "wheel_torques.png", "yaw_error.png"]
+    assert figures == [
+        "convergence.png",
+        "vehicle_response.png",
+        "wheel_torques.png",
+        "yaw_error.png",
+    ]
 
 
 # --------------------------------------------------------------------------- solver options
