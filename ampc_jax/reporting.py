@@ -382,7 +382,8 @@ def _summary(m: dict[str, Any]) -> None:
     )
     print(
         f"  run time        {f('wall_time_s')} s for {f('duration_s')} s simulated "
-        f"({f('realtime_factor', '.1f')}x real time; compile {f('compile_time_s', '.1f')} s)"
+        f"({f('realtime_factor', '.1f')}x real time; first run {f('first_run_s')} s, "
+        f"compile {f('compile_time_s', '.1f')} s)"
     )
 
 

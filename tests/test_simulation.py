@@ -432,3 +432,30 @@ def test_figures_without_e_sub_keep_convergence(cruise_run, tmp_path):
     names = [p.name for p in paths]
     assert names == ["vehicle_response.png", "wheel_torques.png", "convergence.png"]
     assert all(p.stat().st_size > 0 for p in paths)
+
+
+def test_run_time_leaves_out_the_first_execution(monkeypatch):
+    """wall_time is the median of three executions after the first (whose
+    one-time costs it leaves out); a long first run is not repeated."""
+    from ampc_jax import simulation as S
+
+    calls = []
+    delays = iter([0.03, 0.01, 0.02])
+
+    def run():
+        calls.append(1)
+        return next(delays)
+
+    ticks = iter([0.0, 0.03, 1.0, 1.01, 2.0, 2.02])
+    monkeypatch.setattr(S.time, "perf_counter", lambda: next(ticks))
+    monkeypatch.setattr(S.jax, "block_until_ready", lambda x: x)
+    assert S._warm_wall_time(run, first=0.1) == pytest.approx(0.02)
+    assert len(calls) == 3
+    assert S._warm_wall_time(run, first=S._WARM_BUDGET_S + 1.0) == S._WARM_BUDGET_S + 1.0
+    assert len(calls) == 3  # not repeated
+
+
+def test_metrics_report_first_and_warm_run_times(cruise_run):
+    m = cruise_run.metrics()
+    assert m["first_run_s"] > 0 and m["wall_time_s"] > 0
+    assert m["realtime_factor"] == pytest.approx(m["duration_s"] / m["wall_time_s"])
