@@ -188,10 +188,20 @@ def _figures(results: list[Any], out: Path, stem: str = "") -> list[Path]:
     return paths
 
 
+def _progress_disabled(quiet: bool) -> bool | None:
+    """tqdm's ``disable``: off with ``--quiet``; otherwise None, which shows the
+    bars on a terminal only (redirected output gets no carriage-return debris)."""
+    return True if quiet else None
+
+
 def _bar(total: int, quiet: bool) -> Any:
     from tqdm import tqdm
 
-    return tqdm(total=total, disable=quiet, bar_format="{desc:<28}{bar:20}| {n_fmt}/{total_fmt}")
+    return tqdm(
+        total=total,
+        disable=_progress_disabled(quiet),
+        bar_format="{desc:<28}{bar:20}| {n_fmt}/{total_fmt}",
+    )
 
 
 def _replay(cfg: Any, log: Any, repeats: int, quiet: bool) -> dict:
@@ -203,7 +213,7 @@ def _replay(cfg: Any, log: Any, repeats: int, quiet: bool) -> dict:
     n = int(np.shape(log.t)[0])
     with tqdm(
         total=n,
-        disable=quiet,
+        disable=_progress_disabled(quiet),
         leave=False,
         unit="step",
         bar_format="  {desc}{bar:20}| {n_fmt}/{total_fmt} steps [{elapsed}<{remaining}]",

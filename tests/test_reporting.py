@@ -111,3 +111,21 @@ def test_bad_duration_exits_2_without_traceback(tmp_path):
     assert r.returncode == 2, r.stderr
     assert "Traceback" not in r.stderr
     assert "argument --duration: expected a finite time of at least one control period" in r.stderr
+
+
+def test_progress_bars_only_on_a_terminal(monkeypatch):
+    """Bars show on a terminal, not in redirected output (no carriage-return
+    debris in logs), and never with --quiet."""
+    import io
+
+    from ampc_jax import reporting as R
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    monkeypatch.setattr(sys, "stderr", Terminal())
+    assert not R._bar(3, quiet=False).disable
+    assert R._bar(3, quiet=True).disable
+    monkeypatch.setattr(sys, "stderr", io.StringIO())
+    assert R._bar(3, quiet=False).disable
