@@ -1088,7 +1088,7 @@ def _warm_wall_time(run: Callable[[], Any], first: float) -> float:
     """Median wall time of ``_WARM_RUNS`` further executions of a compiled run.
 
     The first execution of a compiled closed loop carries one-time costs
-    (about 25 ms in float32 here, against 8 to 12 ms for a whole 10 to 16 s
+    (about 25 ms in float32 here, against 6 to 16 ms for a whole 9 to 16 s
     run after it), so the run time reported is that of the runs after it;
     runs whose first execution took over ``_WARM_BUDGET_S`` are not repeated
     (their one-time cost is small beside them), and the first time is kept.

@@ -134,7 +134,9 @@ def _bound(value: Any, field_name: str, n: int, side: str, hint: str = "") -> np
     return arr
 
 
-def _matrix(value: Any, field_name: str, rows: int | None, cols: int | None) -> np.ndarray:
+def _matrix(
+    value: Any, field_name: str, rows: int | None, cols: int | None, hint: str = ""
+) -> np.ndarray:
     arr = _array(value, field_name)
     if arr.ndim != 2:
         raise ProblemError(
@@ -142,7 +144,8 @@ def _matrix(value: Any, field_name: str, rows: int | None, cols: int | None) -> 
         )
     if (rows is not None and arr.shape[0] != rows) or (cols is not None and arr.shape[1] != cols):
         raise ProblemError(
-            f"{field_name}: expected shape ({_dims(rows, cols)}), got {arr.shape[0]} x {arr.shape[1]}"
+            f"{field_name}: expected shape ({_dims(rows, cols)}), "
+            f"got {arr.shape[0]} x {arr.shape[1]}{hint}"
         )
     return arr
 
@@ -520,7 +523,13 @@ class Problem:
                         f"constraints[{c}].A: unknown agent {a_name!r}; known agents are {names}"
                     )
                 i = names.index(a_name)
-                M = _matrix(coeff, f"constraints[{c}].A.{a_name}", nc, Bs[i].shape[1])
+                M = _matrix(
+                    coeff,
+                    f"constraints[{c}].A.{a_name}",
+                    nc,
+                    Bs[i].shape[1],
+                    hint=f" (n_u = {Bs[i].shape[1]}: the columns of agents[{i}].B)",
+                )
                 rows[:, offsets[i] : offsets[i + 1]] = M
                 involved.append(i)
             gen_agents.append(tuple(sorted(involved)))

@@ -16,7 +16,9 @@ vehicle examples), at N_p = 10 and 20.
 3. Compile times, separately.
 
 Run: ``python bench/bench_local_explicit.py [--quick]``. Prints a table; also
-writes ``bench/results_local_explicit.json``.
+writes ``bench/results_local_explicit.json`` (or ``--out``).
+``--smoke``: a quick check of the same code (N_p = 10, float64, "tuned", 5
+latency steps, batch 1 of 3-step drives, 1 OSQP drive); writes only to ``--out``.
 """
 
 from __future__ import annotations
@@ -426,6 +428,18 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small sizes (smoke run)")
     ap.add_argument(
+        "--smoke",
+        action="store_true",
+        help="smallest sizes, a quick check of the code (N_p = 10, float64, 'tuned' unless "
+        "given; 5 latency steps, batch 1, 3-step drives); writes JSON only with --out",
+    )
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="the results JSON (default bench/results_local_explicit[_SUFFIX].json)",
+    )
+    ap.add_argument(
         "--chunk", type=int, default=8192, help="drives per compiled call (memory bound)"
     )
     ap.add_argument(
@@ -436,12 +450,19 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--tune", action="store_true", help="only run the rho_scale/relaxation grid")
     ap.add_argument("--only", choices=("latency", "throughput"), help="run one of the two parts")
-    ap.add_argument("--horizons", default="10,20", help="comma-separated N_p values")
-    ap.add_argument("--dtypes", default="float64,float32", help="throughput dtypes")
+    ap.add_argument(
+        "--horizons", default=None, help="comma-separated N_p values (default 10,20; --smoke 10)"
+    )
+    ap.add_argument(
+        "--dtypes",
+        default=None,
+        help="throughput dtypes (default float64,float32; --smoke float64)",
+    )
     ap.add_argument(
         "--configs",
         default=None,
-        help="comma-separated names from CONFIGS for the latency part (default: all)",
+        help="comma-separated names from CONFIGS for the latency part "
+        "(default: all; --smoke: tuned)",
     )
     ap.add_argument(
         "--sync-dispatch",
@@ -456,6 +477,12 @@ def main(argv: list[str] | None = None) -> int:
         help="the configuration of the throughput part",
     )
     args = ap.parse_args(argv)
+    if args.horizons is None:
+        args.horizons = "10" if args.smoke else "10,20"
+    if args.dtypes is None:
+        args.dtypes = "float64" if args.smoke else "float64,float32"
+    if args.configs is None and args.smoke:
+        args.configs = "tuned"
     if args.sync_dispatch:
         if args.only != "latency":
             ap.error(
@@ -471,8 +498,13 @@ def main(argv: list[str] | None = None) -> int:
         for horizon in (10, 20):
             tune(horizon)
         return 0
-    steps = 50 if args.quick else 200
-    sizes = [1, 10, 100, 1000] if args.quick else [1, 10, 100, 1000, 10_000, 100_000]
+    steps = 5 if args.smoke else 50 if args.quick else 200
+    if args.smoke:
+        sizes = [1]
+    elif args.quick:
+        sizes = [1, 10, 100, 1000]
+    else:
+        sizes = [1, 10, 100, 1000, 10_000, 100_000]
     sizes = [n for n in sizes if n <= args.max_batch]
     results = {
         "jax": jax.__version__,
@@ -514,8 +546,8 @@ def main(argv: list[str] | None = None) -> int:
                 horizon,
                 sizes,
                 args.chunk,
-                5 if args.quick else 20,
-                9,
+                1 if args.smoke else 5 if args.quick else 20,
+                3 if args.smoke else 9,
                 config=args.throughput_config,
                 dtype=dtype,
                 vmap_chunk=args.vmap_chunk,
@@ -534,7 +566,10 @@ def main(argv: list[str] | None = None) -> int:
         suffix += "_" + args.horizons.replace(",", "-") + "_" + args.dtypes.replace(",", "-")
     if args.throughput_config != "tuned" and args.only != "latency":
         suffix += "_" + args.throughput_config.replace(" + ", "_").replace(" ", "_")
-    path = Path(__file__).with_name(f"results_local_explicit{suffix}.json")
+    path = args.out or Path(__file__).with_name(f"results_local_explicit{suffix}.json")
+    if args.smoke and args.out is None:
+        print("smoke run: results not written (--out PATH writes them)")
+        return 0
     path.write_text(json.dumps(results, indent=1, default=str))
     print(f"wrote {path}")
     return 0

@@ -32,6 +32,7 @@ Needs the ``bench`` extra (``pip install -e '.[bench]'``, which installs
 jaxopt). Run pinned to one core::
 
     timeout 1800 taskset -c 1 python bench/bench_qp_peers.py
+    python bench/bench_qp_peers.py --smoke   # a quick check: 1 s of cruise, tol 1e-3
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ import ampc_jax  # noqa: F401  (XLA:CPU workaround before JAX starts)
 
 METHODS = ("lu",)  # "cg" needed 4000 iterations at tol 1e-3 on the cruise run (3.8 ms a step)
 SCENARIOS = ("cruise_lane_change", "stability_launch_brake", "stability_dlc")
+SMOKE_DURATION = 1.0  # s of closed loop in a --smoke run
 
 
 def _timed(fn: Any, *args: Any, repeats: int) -> tuple[float, Any]:
@@ -61,7 +63,9 @@ def _timed(fn: Any, *args: Any, repeats: int) -> tuple[float, Any]:
     return float(np.median(ts)), out
 
 
-def run_scenario(name: str, tols: list[float], repeats: int) -> list[dict[str, Any]]:
+def run_scenario(
+    name: str, tols: list[float], repeats: int, duration: float | None = None
+) -> list[dict[str, Any]]:
     import jax
     import jax.numpy as jnp
     import jaxopt
@@ -76,7 +80,7 @@ def run_scenario(name: str, tols: list[float], repeats: int) -> list[dict[str, A
         simulate,
     )
 
-    res = simulate(name)
+    res = simulate(name, duration=duration)
     cfg, log = res.config, res.log
     T, agent_idx, _ = build_topology(cfg)
     cols = _input_columns(cfg, agent_idx)
@@ -176,10 +180,25 @@ def run_scenario(name: str, tols: list[float], repeats: int) -> list[dict[str, A
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))
-    ap.add_argument("--osqp-tols", type=float, nargs="+", default=[1e-3, 1e-4, 1e-6])
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--scenarios", nargs="+", help="default: all three (--smoke: the first)")
+    ap.add_argument(
+        "--osqp-tols", type=float, nargs="+", help="default: 1e-3 1e-4 1e-6 (--smoke: 1e-3)"
+    )
+    ap.add_argument("--repeats", type=int, help="default: 3 (--smoke: 1)")
+    ap.add_argument(
+        "--smoke",
+        action="store_true",
+        help=f"a quick check of the same code: {SMOKE_DURATION:g} s of closed loop, "
+        "with the smoke defaults above",
+    )
     args = ap.parse_args(argv)
+    if args.scenarios is None:
+        args.scenarios = list(SCENARIOS[:1] if args.smoke else SCENARIOS)
+    if args.osqp_tols is None:
+        args.osqp_tols = [1e-3] if args.smoke else [1e-3, 1e-4, 1e-6]
+    if args.repeats is None:
+        args.repeats = 1 if args.smoke else 3
+    duration = SMOKE_DURATION if args.smoke else None
     try:
         import jaxopt  # noqa: F401
     except ImportError:
@@ -195,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     print("| --- | --- | --- | --- | --- | --- |")
     for name in args.scenarios:
-        for r in run_scenario(name, args.osqp_tols, args.repeats):
+        for r in run_scenario(name, args.osqp_tols, args.repeats, duration):
             print(
                 f"| {r['scenario']} | {r['solver']} | {r['t_median_us']:.0f} "
                 f"| {r['le_over_solver']:.3g} | {r['e_sub_p95']:.3g} / {r['e_sub_max']:.3g} "

@@ -10,13 +10,32 @@ import os
 # of its own before JAX starts its thread pools, so that the two workers do
 # not compete for a core and timing-window tests see a steady core, as under
 # the former `taskset -c 0` run of the whole suite.
+# Only when every worker gets a core (more workers than cores, or a parent
+# already pinned to fewer cores: no pinning, the scheduler shares them out).
 _WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")
 if _WORKER.startswith("gw") and hasattr(os, "sched_setaffinity"):
     _cpus = sorted(os.sched_getaffinity(0))
-    os.sched_setaffinity(0, {_cpus[int(_WORKER[2:]) % len(_cpus)]})
+    _n_workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if int(_WORKER[2:]) < len(_cpus) and _n_workers <= len(_cpus):
+        os.sched_setaffinity(0, {_cpus[int(_WORKER[2:])]})
 
 import jax  # noqa: E402
 
 import ampc_jax  # noqa: F401, E402  (sets XLA_FLAGS before the CPU backend starts)
 
 jax.config.update("jax_enable_x64", True)
+
+
+# Tests that time things (the can_bridge bridge's tick and watchdog windows)
+# or use both cores on purpose (the subprocesses of test_batch.py's sharding
+# and deadlock tests) run in one xdist group, one after another on one worker
+# (`.ci/run` passes --dist loadgroup), so that neither disturbs the other.
+SERIAL_GROUP = "timing_and_both_cores"
+
+
+def pytest_collection_modifyitems(config, items):
+    import pytest
+
+    for item in items:
+        if "tests/can_bridge/" in item.nodeid or item.get_closest_marker("both_cores"):
+            item.add_marker(pytest.mark.xdist_group(SERIAL_GROUP))

@@ -60,6 +60,7 @@ SCRIPT = textwrap.dedent(
 )
 
 
+@pytest.mark.both_cores
 def test_sharded_over_two_cpu_devices():
     env = dict(os.environ)
     env["XLA_FLAGS"] = (
@@ -99,6 +100,7 @@ HANG_SCRIPT = textwrap.dedent(
 )
 
 
+@pytest.mark.both_cores
 def test_sharded_batch_with_factorisations_does_not_deadlock():
     env = dict(os.environ)
     env["XLA_FLAGS"] = (

@@ -242,8 +242,11 @@ def test_unknown_agent_in_constraint():
 def test_constraint_shape():
     d = base()
     d["constraints"] = [{"A": {"b": [[1.0]]}, "b": [1.0]}]
-    with pytest.raises(ProblemError, match=r"constraints\[0\]\.A\.b: expected shape \(1 x 2\)"):
+    with pytest.raises(
+        ProblemError, match=r"constraints\[0\]\.A\.b: expected shape \(1 x 2\)"
+    ) as e:
         Problem.from_dict(d)
+    assert "(n_u = 2: the columns of agents[1].B)" in str(e.value)
 
 
 def test_uncovered_input_refused_for_local_explicit():

@@ -49,9 +49,12 @@ def test_socketcan_runtime_on_vcan0() -> None:
             can_id = int.from_bytes(frame[:4], "little")
             chk.add(can_id & 0x1FFFFFFF, bool(can_id & 0x80000000), frame[8 : 8 + frame[4]])
     rx.close()
-    # the command reaches the bus: the last frames carry it, in active mode
-    assert chk.frames[-1]["mode"] == "active"
-    assert chk.frames[-1]["torques"] == (1.0, 2.0, 3.0, 4.0), chk.frames[-3:]
+    # the command reaches the bus: the frames sent while it was fresh carry it
+    # (the later ones may be in Hold: the command is sent once and the default
+    # hold_after is 150 ms, shorter than the 10 frames read here)
+    active = [f for f in chk.frames if f["mode"] == "active"]
+    assert active, chk.frames
+    assert active[-1]["torques"] == (1.0, 2.0, 3.0, 4.0), chk.frames
 
 
 @pytest.mark.skipif(PROBLEM is None, reason="this kernel supports SocketCAN")

@@ -1,0 +1,272 @@
+"""Smoke runs of the benchmark scripts (``bench/*.py``), which CI runs nowhere else.
+
+Each test runs one script end to end on its smallest sizes (``--smoke`` or the
+script's own small options) in a subprocess from the repository root, checks
+the exit code and that the output has the table the full run prints (the
+README's "Measured" section and docs/results.md quote those tables). The
+numbers are not checked: these are not timing tests. Nothing may be written
+into the repository (outputs go to ``tmp_path``).
+
+About 60 s on one core in all (72 s where jaxopt is installed; the
+bench_qp_peers test is skipped without it); ``bench_local_explicit.py
+--smoke``, the issue's latency and throughput benchmark, takes 13 to 15 s of
+it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import ampc_jax
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCH = ROOT / "bench"
+
+
+def _bench_files() -> set[str]:
+    return {p.name for p in BENCH.iterdir() if p.name != "__pycache__"}
+
+
+def _shell_env() -> dict[str, str]:
+    """This environment without the XLA flags that this process's ``import ampc_jax``
+    appended (conftest.py), so that a script sets JAX up as it does from a shell
+    (bench_can_bridge.py's compile load does not import ampc_jax)."""
+    ours = set(ampc_jax.XLA_WORKAROUND_FLAGS).union(*ampc_jax.XLA_PERFORMANCE_FLAGS.values())
+    env = dict(os.environ)
+    flags = [f for f in env.pop("XLA_FLAGS", "").split() if f not in ours]
+    if flags:
+        env["XLA_FLAGS"] = " ".join(flags)
+    return env
+
+
+def run_bench(script: str, *args: str, timeout: float) -> str:
+    """``python bench/<script> <args>`` from the repository root; its stdout."""
+    before = _bench_files()
+    r = subprocess.run(
+        [sys.executable, str(BENCH / script), *args],
+        cwd=ROOT,
+        env=_shell_env(),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+    assert r.returncode == 0, (
+        f"{script} {' '.join(args)} exited {r.returncode}\n"
+        f"--- stdout\n{r.stdout[-3000:]}\n--- stderr\n{r.stderr[-5000:]}"
+    )
+    assert "Traceback" not in r.stderr, r.stderr[-5000:]
+    assert _bench_files() == before, f"{script} wrote into bench/: {_bench_files() - before}"
+    return r.stdout
+
+
+def _rows(out: str, first_cell: str) -> list[list[str]]:
+    """The cells of the markdown table rows whose first cell starts with ``first_cell``."""
+    return [
+        [c.strip() for c in line.strip().strip("|").split("|")]
+        for line in out.splitlines()
+        if line.startswith(f"| {first_cell}")
+    ]
+
+
+@pytest.mark.timeout(90)
+def test_bench_batched_layout():
+    out = run_bench("bench_batched_layout.py", "--smoke", timeout=80)
+    assert "us per case, batch 64, 40 x 40, float64" in out, out
+    lines = out.splitlines()
+    assert lines[1].split() == ["piece", "batch", "first", "batch", "last"], out
+    for piece in (
+        "matrix-vector product",
+        "30 of them in a fori_loop",
+        "inverse by symmetric sweeps",
+        "Gram matrix Y'Y (10 x 40 Y)",
+    ):
+        row = next(line for line in lines if line.startswith(piece))
+        assert len(row[32:].split()) == 2, row  # batch first, batch last
+    for piece in ("LAPACK inverse", "LAPACK Cholesky"):
+        row = next(line for line in lines if line.startswith(piece))
+        float(row[32:])
+
+
+@pytest.mark.timeout(120)
+def test_bench_call_overhead():
+    out = run_bench("bench_call_overhead.py", "--smoke", timeout=110)
+    assert (
+        "| scenario | LE full / no-op / packed (us) | int. full / no-op / packed (us) "
+        "| r_time full | packed | full minus no-op |"
+    ) in out, out
+    (row,) = _rows(out, "cruise_lane_change")
+    assert len(row) == 6, row
+    assert all(len(row[i].split(" / ")) == 3 for i in (1, 2)), row
+    for ratio in row[3:]:
+        assert float(ratio) > 0, row
+
+
+@pytest.mark.timeout(90)
+def test_bench_can_bridge(tmp_path):
+    pytest.importorskip("can_bridge")
+    for peer_module in ("can", "cantools", "e2e"):  # the peer process's (test extra)
+        pytest.importorskip(peer_module)
+    path = tmp_path / "can_bridge.json"
+    out = run_bench(
+        "bench_can_bridge.py",
+        "--ticks",
+        "100",
+        "--period-ms",
+        "10",
+        "--json",
+        str(path),
+        timeout=80,
+    )
+    assert out.splitlines()[0].split() == [
+        "condition", "ticks", "mean", "period", "ms", "drift", "ms",
+        "late", "p50", "p99", "max", "overruns", "peer", "frames/crc/gaps",
+    ], out  # fmt: skip
+    results = {r["condition"]: r for r in json.loads(path.read_text())}
+    # jax-compile-rt is skipped (with a message) where SCHED_FIFO is not permitted
+    assert {"idle", "jax-compile"} <= set(results) <= {"idle", "jax-compile", "jax-compile-rt"}
+    for name, r in results.items():
+        assert any(line.startswith(f"{name} ") for line in out.splitlines()), out
+        assert r["ticks"] == 100, r
+        assert r["peer"]["frames"] > 0 and r["peer"]["bad_crc"] == 0, r
+    assert results["jax-compile"]["note"].startswith("JAX "), results["jax-compile"]
+
+
+@pytest.mark.timeout(120)
+def test_bench_closed_loop_sweep():
+    out = run_bench("bench_closed_loop.py", "sweep", "--smoke", timeout=110)
+    for heading in (
+        "### cruise: best rho scale per relaxation",
+        "### cruise: chosen Local Explicit settings, tolerance and budget",
+        "### cruise: shadow IntegratedADMM at 1e-8 Nm^2",
+        "chosen for cruise: relaxation 1, rho_scale (1.0, 1.0), integrated_rho_scale 1",
+        "shadow for cruise: relaxation",
+    ):
+        assert heading in out, out
+    assert [r[0] for r in _rows(out, "Local Explicit")] == [
+        "Local Explicit",
+        "Local Explicit (paper)",
+    ]
+    defaults = json.loads(out.split("CONTROLLER_DEFAULTS =", 1)[1])
+    assert set(defaults["cruise"]) == {
+        "relaxation",
+        "rho_scale",
+        "integrated_rho_scale",
+        "shadow_relaxation",
+        "shadow_rho_scale",
+    }
+
+
+@pytest.mark.timeout(60)
+def test_bench_closed_loop_table(tmp_path):
+    """``table`` on metrics.json files of the two layouts ``ampc`` writes (hand-made:
+    a real ``ampc simulate`` run would cost about 10 s)."""
+    m = {
+        "formulation": "local_explicit",
+        "objectives": ["LST", "YRT"],
+        "tol_primal": 1.0,
+        "relaxation": 1.5,
+        "rho_scale": [1.0, 0.5],
+        "integrated_rho_scale": 0.3,
+        "anderson": 3,
+        "e_sub_p95": 0.342,
+        "e_sub_max": 0.645,
+        "iterations_p50": 6,
+        "iterations_p95": 9.85,
+        "iterations_max": 13,
+        "r_time_median": 1.04,
+        "r_time_p95": 1.27,
+        "t_distributed_median_us": 68.2,
+        "t_integrated_median_us": 66.0,
+        "yaw_rms": 0.0,
+        "yaw_rms_focus": None,
+        "rear_slip_abs_max": 0.00119,
+        "rear_slip_abs_p95": 0.00119,
+        "realtime_factor": 281.0,
+    }
+    (tmp_path / "cruise").mkdir()
+    (tmp_path / "cruise" / "metrics.json").write_text(json.dumps(m))
+    (tmp_path / "demo").mkdir()
+    none = {"formulation": "none", "objectives": []}
+    (tmp_path / "demo" / "metrics.json").write_text(json.dumps({"LST+YRT": m, "LST": none}))
+    out = run_bench("bench_closed_loop.py", "table", str(tmp_path), timeout=50)
+    assert out.startswith("| run | objectives | tol | alpha / rho scale"), out
+    rows = {r[0]: r for r in _rows(out, "`")}
+    assert set(rows) == {"`cruise`", "`demo/LST+YRT`", "`demo/LST`"}, out
+    assert rows["`cruise`"][1:6] == [
+        "LST+YRT",
+        "1",
+        "1.5 / [1.0, 0.5]; 0.3 / 3",
+        "0.342 / 0.645",
+        "6 / 9.85 / 13",
+    ], rows
+    assert rows["`demo/LST`"][1] == "driver alone", rows
+
+
+@pytest.mark.timeout(120)
+def test_bench_local_explicit(tmp_path):
+    path = tmp_path / "local_explicit.json"
+    out = run_bench("bench_local_explicit.py", "--smoke", "--out", str(path), timeout=110)
+    assert "N_p=10 [tuned]: full step warm" in out, out
+    assert "ratio JAX/OSQP" in out and "JAX/Clarabel" in out, out
+    assert "N_p=10 float64 batch      1:" in out, out
+    assert "N_p=10 float64 [tuned]: OSQP Python loop" in out, out
+    assert "best JAX batch / OSQP loop =" in out, out
+    results = json.loads(path.read_text())
+    (lat,) = results["latency"]
+    (thr,) = results["throughput"]
+    assert lat["horizon"] == 10 and lat["steps"] == 5 and lat["ratio_jax_over_osqp"] > 0, lat
+    assert thr["ratio_best_jax_over_osqp_loop"] > 0, thr
+
+
+@pytest.mark.timeout(120)
+def test_bench_qp_peers():
+    pytest.importorskip("jaxopt")  # the bench extra, not the test extra
+    out = run_bench("bench_qp_peers.py", "--smoke", timeout=110)
+    assert (
+        "| scenario | solver | step median (us) | **r_time = t_LE / t_solver** "
+        "| e_sub p95 / max (Nm) | iterations p50 / p95 |"
+    ) in out, out
+    rows = _rows(out, "cruise_lane_change")
+    assert [r[1] for r in rows] == [
+        "Local Explicit",
+        "IntegratedADMM",
+        "BoxOSQP lu, tol 0.001",
+    ], out
+    assert all(len(r) == 6 for r in rows), rows
+    assert float(rows[0][3]) == 1.0, rows  # Local Explicit against itself
+
+
+@pytest.mark.timeout(60)
+def test_bench_rho():
+    out = run_bench("bench_rho.py", "--problems", "1", timeout=50)
+    lines = out.splitlines()
+    assert lines[0] == "seed  it(rho*)  best  best scale (per objective)  ratio", out
+    assert lines[1].split()[0] == "0" and float(lines[1].split()[-1]) > 0, out
+    assert lines[-1].startswith("ratio min "), out
+
+
+@pytest.mark.timeout(120)
+def test_bench_thunk_graph():
+    out = run_bench("bench_thunk_graph.py", "--smoke", timeout=110)
+    lines = out.splitlines()
+    assert lines[0].split() == [
+        "scenario",
+        "solver",
+        "thunks",
+        "sources",
+        "max",
+        "waiting",
+        "verdict",
+    ]
+    rows = [line.split() for line in lines[1:]]
+    assert [r[:2] for r in rows] == [["cruise_lane_change", "LE"], ["cruise_lane_change", "IA"]]
+    for r in rows:
+        n, sources, worst = map(int, r[2:5])
+        assert 0 < sources <= n and 0 <= worst < n, r
+        assert r[5] in ("inline", "splits"), r
