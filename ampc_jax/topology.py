@@ -150,6 +150,11 @@ def _matrix(
     return arr
 
 
+def _inputs_of(i: int, n_u: int) -> str:
+    """The end of a size error whose size is agent i's input count."""
+    return f" (n_u = {n_u}: the columns of agents[{i}].B)"
+
+
 def _dims(rows: int | None, cols: int | None) -> str:
     return f"{rows if rows is not None else 'n'} x {cols if cols is not None else 'm'}"
 
@@ -411,7 +416,7 @@ class Problem:
                     f"agents[{i}].B ({name}): expected an {nx} x n_u matrix, got shape {B.shape}"
                 )
             nu = B.shape[1]
-            hint = f" (n_u = {nu}: the columns of agents[{i}].B)"
+            hint = _inputs_of(i, nu)
             R = _weight(a.R, f"agents[{i}].R ({name})", nu, definite=False, hint=hint)
             lb = _bound(a.lb, f"agents[{i}].lb ({name})", nu, "lower", hint)
             ub = _bound(a.ub, f"agents[{i}].ub ({name})", nu, "upper", hint)
@@ -528,7 +533,7 @@ class Problem:
                     f"constraints[{c}].A.{a_name}",
                     nc,
                     Bs[i].shape[1],
-                    hint=f" (n_u = {Bs[i].shape[1]}: the columns of agents[{i}].B)",
+                    hint=_inputs_of(i, Bs[i].shape[1]),
                 )
                 rows[:, offsets[i] : offsets[i + 1]] = M
                 involved.append(i)
