@@ -337,7 +337,8 @@ def test_float32_matches_float64(factorisation):
     r64 = jax.jit(solver.solve)(p.data(jnp.float64))
     r32 = jax.jit(solver.solve)(p.data(jnp.float32))
     assert r32.u.dtype == jnp.float32 and r64.u.dtype == jnp.float64
-    assert int(r32.status) in (0, 1)
+    assert int(r64.status) == 0  # the float64 reference converged
+    assert int(r32.status) in (0, 1)  # float32 may stall above 1e-7 (its resolution)
     # float32 tolerance: 1e-3 of the input scale (bounds are O(1) here)
     np.testing.assert_allclose(r32.u0, r64.u0, atol=2e-3)
     # batched float32 (the factorisations then run as pure-JAX sweeps)
@@ -404,9 +405,11 @@ def test_state_views_round_trip(n_obj, shared):
     for j in range(n_obj):
         assert U[j].shape == (T.horizon, len(T.group_columns(j)))
         assert gam[j].shape == (T.horizon, len(T.group_rows(j)))
-    # each objective's copy of an input agrees with the consensus output at the optimum
+    # each objective's copy of an input agrees with the consensus output at the
+    # optimum (residuals ~1e-5 at tol 1e-10; a wrong view is off by 0.1 to 1)
+    assert int(res.status) == 0
     for j in range(n_obj):
-        np.testing.assert_allclose(U[j], res.u[:, list(T.group_columns(j))], atol=1e-3)
+        np.testing.assert_allclose(U[j], res.u[:, list(T.group_columns(j))], atol=1e-4)
     back = solver.state_of(U, st.Z, gam)
     np.testing.assert_array_equal(back.gamma, st.gamma)  # padding stays zero in the loop
     for a, b in zip(solver.local_inputs(back), U, strict=True):
