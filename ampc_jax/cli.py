@@ -53,21 +53,35 @@ def _parse_rho(text: str) -> float | None:
     return value
 
 
-def _positive(kind: type) -> Any:
+def _arg_type(check: Any, kind: type = float) -> Any:
+    """An argparse ``type``: parse with ``kind``, then ``check`` (ValueError -> usage error)."""
+
     def parse(text: str) -> Any:
         try:
-            v = kind(text)
+            value = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(
-                f"expected a positive {kind.__name__}, got {text!r}"
+                f"expected {'an integer' if kind is int else 'a number'}, got {text!r}"
             ) from None
-        if not (v > 0 and v < float("inf")):
-            raise argparse.ArgumentTypeError(
-                f"expected a positive finite {kind.__name__}, got {text!r}"
-            )
-        return v
+        try:
+            check(value)
+        except ValueError as exc:
+            # the check's message starts with the field name; argparse names the option
+            raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[-1]) from None
+        return value
 
+    parse.__name__ = kind.__name__  # argparse's "invalid <name> value" fallback
     return parse
+
+
+def _positive_finite(value: float) -> None:
+    if not (np.isfinite(value) and value > 0):
+        raise ValueError(f"value: expected a positive finite number, got {value!r}")
+
+
+def _at_least_one(value: int) -> None:
+    if value < 1:
+        raise ValueError(f"value: expected an integer >= 1, got {value!r}")
 
 
 def _scales(text: str) -> tuple[float, ...]:
@@ -407,7 +421,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rho", type=_parse_rho, default=None, help="'auto' (eq.opt_ro) or a value")
     p.add_argument(
         "--tol",
-        type=_positive(float),
+        type=_arg_type(_positive_finite),
         default=1e-6,
         help="eps_r = eps_s of eq.Convergence, absolute, on squared norms (default 1e-6)",
     )
@@ -432,7 +446,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--max-iter",
-        type=_positive(int),
+        type=_arg_type(_at_least_one, int),
         default=MAX_ITER_DEFAULT,
         help=f"iteration cap (default {MAX_ITER_DEFAULT})",
     )

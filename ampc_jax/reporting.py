@@ -19,33 +19,14 @@ from typing import Any
 
 import numpy as np
 
+from .cli import _arg_type, _at_least_one, _positive_finite
+
 __all__ = ["add_cli_commands", "cmd_demo", "cmd_simulate", "write_metrics", "write_timeseries"]
 
 
 def _fail(msg: str) -> int:
     print(f"ampc: error: {msg}", file=sys.stderr)
     return 2
-
-
-def _arg_type(check: Any, kind: type = float) -> Any:
-    """An argparse ``type``: parse with ``kind``, then ``check`` (ValueError -> usage error)."""
-
-    def parse(text: str) -> Any:
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(
-                f"expected {'an integer' if kind is int else 'a number'}, got {text!r}"
-            ) from None
-        try:
-            check(value)
-        except ValueError as exc:
-            # the check's message starts with the field name; argparse names the option
-            raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[-1]) from None
-        return value
-
-    parse.__name__ = kind.__name__  # argparse's "invalid <name> value" fallback
-    return parse
 
 
 def _duration(value: float) -> None:
@@ -58,16 +39,6 @@ def _mu(value: float) -> None:
     from .simulation import check_mu
 
     check_mu(value)
-
-
-def _positive_finite(value: float) -> None:
-    if not (np.isfinite(value) and value > 0):
-        raise ValueError(f"value: expected a positive finite number, got {value!r}")
-
-
-def _at_least_one(value: int) -> None:
-    if value < 1:
-        raise ValueError(f"value: expected an integer >= 1, got {value!r}")
 
 
 def _output_dir(text: str) -> str | None:
