@@ -45,7 +45,8 @@ def _label(res: Any) -> str:
 def vehicle_response(results: Sequence[Any], labels: Sequence[str] | None = None) -> Any:
     """Vehicle response against references for one or several runs of one scenario.
 
-    Panels: (a) speed v_x and v_ref, (b) yaw rate and the yaw-rate reference of
+    Panels: (a) speed v_x and v_ref (cruise control; the stability examples'
+    drivers apply an open-loop torque and track no speed), (b) yaw rate and the yaw-rate reference of
     eq.CC_objective, (c) rear-wheel slip (with the desired slip of
     eq.VSC_objective for stability runs), (d) rear wheel speeds against
     omega_ref (stability) or the steering angle (cruise), (e) path Y(X).
@@ -58,7 +59,8 @@ def vehicle_response(results: Sequence[Any], labels: Sequence[str] | None = None
     t0 = r0.log.t
     for a in ax[:5]:
         _shade(a, r0)
-    ax[0].plot(t0, r0.log.v_ref, "k--", lw=1, label="v_ref")
+    if np.any(np.isfinite(r0.log.v_ref)):  # the stability drivers track no speed
+        ax[0].plot(t0, r0.log.v_ref, "k--", lw=1, label="v_ref")
     ax[1].plot(t0, r0.log.yaw_ref, "k--", lw=1, label="reference")
     stab = r0.config.example == "stability"
     if stab:
@@ -87,6 +89,22 @@ def vehicle_response(results: Sequence[Any], labels: Sequence[str] | None = None
     if stab:
         ax[2].set_ylim(-1.0, 1.0)
     ax[3].set_ylabel("rear wheel speed (rad/s)" if stab else "road-wheel angle (deg)")
+    if stab:
+        # a spinning baseline (driver alone: hundreds of rad/s) would flatten the
+        # main run and omega_ref: keep their scale, say what is off it
+        top = 1.3 * float(np.nanmax([np.nanmax(r0.log.omega[:, 2:]), np.nanmax(r0.log.omega_ref)]))
+        peaks = [float(np.nanmax(r.log.omega[:, 2:])) for r in results]
+        off = [f"{lab} up to {pk:.0f}" for lab, pk in zip(labels, peaks, strict=True) if pk > top]
+        if off and np.isfinite(top) and top > 0:
+            ax[3].set_ylim(0.0, top)
+            ax[3].text(
+                0.02,
+                0.95,
+                "off scale: " + ", ".join(off) + " rad/s",
+                transform=ax[3].transAxes,
+                fontsize=7,
+                va="top",
+            )
     ax[4].set_ylabel("lateral error Y - y_path (m)")
     ax[5].set_xlabel("X (m)")
     ax[5].set_ylabel("Y (m)")

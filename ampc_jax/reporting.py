@@ -2,7 +2,10 @@
 
 ``ampc simulate SCENARIO --out DIR`` writes ``timeseries.csv`` (one row per
 control step), ``metrics.json`` (:meth:`SimResult.metrics`) and the figures of
-:mod:`ampc_jax.figures`. ``ampc demo`` runs the cruise-control lane change with
+:mod:`ampc_jax.figures`; with ``--compare`` it also runs the paper's baseline
+(:func:`~ampc_jax.simulation.baseline_config`: LST alone for cruise control,
+the driver alone for stability control) into ``DIR/baseline/`` and overlays
+both runs in the figures. ``ampc demo`` runs the cruise-control lane change with
 both objectives and with LST alone and prints the key numbers.
 """
 
@@ -199,7 +202,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     import jax.numpy as jnp
 
     from .manoeuvres import SCENARIOS
-    from .simulation import config_for, simulate, with_settings
+    from .simulation import baseline_config, config_for, simulate, with_settings
 
     if args.scenario not in SCENARIOS:
         print(
@@ -227,18 +230,24 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         )
         if args.set:
             cfg = with_settings(cfg, **_parse_settings(args.set, cfg.settings))
+        base_cfg = baseline_config(cfg) if args.compare else None
     except ValueError as exc:
-        return _fail(str(exc))
+        return _fail(str(exc).replace("compare:", "--compare:", 1))
     problem = _output_dir(args.out)
     if problem:
         return _fail(problem)
     out = Path(args.out)
     timing = cfg.formulation == "local_explicit" and not args.no_timing and cfg.shadow
-    bar = _bar(4, args.quiet)
+    bar = _bar(5 if base_cfg else 4, args.quiet)
     bar.set_description("compile + run closed loop")
     dtype = jnp.float32 if args.float32 else jnp.float64
     res = simulate(spec, cfg, duration=args.duration, mu=args.mu, dtype=dtype)
     bar.update(1)
+    base = None
+    if base_cfg is not None:
+        bar.set_description("baseline: compile + run")
+        base = simulate(spec, base_cfg, duration=args.duration, mu=args.mu, dtype=dtype)
+        bar.update(1)
     bar.set_description("replay timing (r_time)")
     if timing:
         import jax
@@ -250,13 +259,22 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     m = res.metrics()
     write_timeseries(res, out / "timeseries.csv")
     write_metrics(m, out / "metrics.json")
+    if base is not None:
+        mb = base.metrics()
+        write_timeseries(base, out / "baseline" / "timeseries.csv")
+        write_metrics(mb, out / "baseline" / "metrics.json")
     bar.update(1)
     bar.set_description("figures")
-    figs = _figures([res], out)
+    figs = _figures([res] if base is None else [res, base], out)
     bar.update(1)
     bar.close()
     _summary(m)
+    if base is not None:
+        _summary(mb)
+        print(_comparison(m, mb))
     print(f"wrote {out / 'timeseries.csv'}, {out / 'metrics.json'}")
+    if base is not None:
+        print(f"baseline in {out / 'baseline'}")
     for p in figs:
         print(f"figure {p}")
     return 0
@@ -366,6 +384,29 @@ def _summary(m: dict[str, Any]) -> None:
         f"({f('realtime_factor', '.1f')}x real time; first run {f('first_run_s')} s, "
         f"compile {f('compile_time_s', '.1f')} s)"
     )
+    for w in m.get("warnings", ()):
+        print(f"  warning: {w}")
+
+
+def _comparison(m: dict[str, Any], base: dict[str, Any]) -> str:
+    """One line: what the run's objectives change against the baseline run ``base``."""
+
+    def arrow(key: str, unit: str) -> str:
+        a, b = base.get(key), m.get(key)
+        if a is None or b is None or not (np.isfinite(a) and np.isfinite(b)):
+            return f"{key} n/a"
+        ratio = f" ({a / b:.2f}x lower)" if b > 0 and a >= b else ""
+        return f"{a:.4g} -> {b:.4g}{unit}{ratio}"
+
+    who = "+".join(m["objectives"]) if m["formulation"] != "none" else "no MPC"
+    was = "+".join(base["objectives"]) if base["formulation"] != "none" else "the driver alone"
+    text = f"{who} against {was}: yaw-rate rms (focus) {arrow('yaw_rms_focus', ' rad/s')}"
+    if m.get("example") == "stability":
+        text += (
+            f"; rear |slip| max {arrow('rear_slip_abs_max', '')}"
+            f"; rear slip excess rms {arrow('rear_slip_excess_rms', '')}"
+        )
+    return text
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -401,11 +442,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     bar.close()
     _summary(mb)
     _summary(ml)
-    ratio = ml["yaw_rms_focus"] / mb["yaw_rms_focus"] if mb["yaw_rms_focus"] else float("nan")
-    print(
-        f"enabling YRT: yaw-rate rms in the focus window {ml['yaw_rms_focus']:.4f} -> "
-        f"{mb['yaw_rms_focus']:.4f} rad/s ({ratio:.2f}x lower)"
-    )
+    print(_comparison(mb, ml))
     print(f"demo took {time.perf_counter() - t_start:.1f} s; outputs in {out}")
     for p in figs:
         print(f"figure {p}")
@@ -498,6 +535,12 @@ def add_cli_commands(sub: Any) -> None:
         metavar="FIELD=VALUE",
         help="override a field of the example's settings (e.g. horizon=2, q_yrt=1e4); "
         "horizon >= 1, dt > 0, q_* >= 0, r_* > 0, bounds >= 0",
+    )
+    p.add_argument(
+        "--compare",
+        action="store_true",
+        help="also run the paper's baseline (cruise: LST alone; stability: the driver "
+        "alone) into OUT/baseline and overlay both in the figures",
     )
     p.add_argument("--no-shadow", action="store_true", help="skip the integrated shadow")
     p.add_argument("--no-timing", action="store_true", help="skip the r_time replay")

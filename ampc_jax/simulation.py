@@ -78,6 +78,7 @@ from .vehicle import (
     cruise_wheel_torques,
     stability_control_model,
     stability_wheel_torques,
+    wheel_speed_reference,
     yaw_rate_reference,
 )
 
@@ -90,7 +91,9 @@ __all__ = [
     "SimLog",
     "SimResult",
     "Simulator",
+    "DURATION_MAX",
     "MU_MAX",
+    "baseline_config",
     "build_topology",
     "check_duration",
     "check_mu",
@@ -115,13 +118,18 @@ _OK_STATUS = (0, 1)  # solved, max_iter_reached: applied; anything else falls ba
 # Cruise "none": no MPC, so a speed PI of the driver plays DTR (as in tests/test_manoeuvres.py).
 _CRUISE_DRIVER_PI = (1500.0, 200.0)
 
+DURATION_MAX = 3600.0
+"""Longest simulated time (s) :func:`simulate` accepts in one run: 72,000
+control steps, whose log (with each step's problem data) fills a few hundred MB."""
+
 MU_MAX = 2.0
 """Largest road friction :func:`simulate` accepts (dry asphalt is about 1; the
 tyre model of :mod:`ampc_jax.plant` is not meant for more than racing slicks)."""
 
 
 def check_duration(duration: Any, name: str = "duration") -> float:
-    """A simulated time in s: finite and at least one control period (``CONTROL_DT``).
+    """A simulated time in s: finite, at least one control period (``CONTROL_DT``)
+    and at most ``DURATION_MAX``.
 
     Returns it as a float; ValueError naming ``name`` otherwise.
     """
@@ -135,6 +143,11 @@ def check_duration(duration: Any, name: str = "duration") -> float:
         raise ValueError(
             f"{name}: expected a finite time of at least one control period "
             f"({CONTROL_DT:g} s), got {duration!r}"
+        )
+    if d > DURATION_MAX:
+        raise ValueError(
+            f"{name}: expected at most {DURATION_MAX:g} s ({round(DURATION_MAX / CONTROL_DT)} "
+            f"control steps) in one run, got {duration!r}; split longer runs"
         )
     return d
 
@@ -461,6 +474,30 @@ def config_for(spec: ScenarioSpec | str, **overrides: Any) -> SimConfig:
     return SimConfig(**kw)
 
 
+def baseline_config(config: SimConfig) -> SimConfig:
+    """The run the paper compares ``config`` with (section "Experimental Studies").
+
+    Cruise control: LST alone (YRT disabled), same solver settings, so the
+    comparison shows what YRT adds (fig_CC_vehicle). Stability control: the
+    driver alone, no MPC (fig_VSC_straight_vehicle, fig_VSC_DLC_vehicle).
+    ValueError if ``config`` already is that run.
+    """
+    if config.example == "cruise":
+        base = replace(config, disabled=("YRT",))
+        what = "LST alone"
+    else:
+        base = replace(config, formulation="none", disabled=())
+        what = "the driver alone"
+    same = base.formulation == config.formulation and (
+        base.formulation == "none" or base.enabled == config.enabled
+    )
+    if same:
+        raise ValueError(
+            f"compare: this run already is the {config.example} example's baseline ({what})"
+        )
+    return base
+
+
 def build_topology(config: SimConfig) -> tuple[Topology, tuple[int, ...], tuple[int, ...]]:
     """Topology of the enabled objectives (``--disable``).
 
@@ -754,9 +791,7 @@ class Simulator:
             torques = self.wheel_torques(u_full, T_drv)
             y_ref = yaw_rate_reference(meas.v_x, steer, mu, p)
             om_ref = (
-                meas.v_x
-                * (1.0 + jnp.where(T_drv >= 0, c.settings.slip_des, -c.settings.slip_des))
-                / p.R_w
+                wheel_speed_reference(meas.v_x, T_drv, p, c.settings.slip_des)[0]
                 if c.example == "stability"
                 else nan
             )
@@ -772,7 +807,12 @@ class Simulator:
                 slip=meas.slip,
                 steer=steer,
                 driver_torque=T_drv,
-                v_ref=v_ref,
+                # the stability drivers' open-loop torque tracks no speed: no v_ref
+                v_ref=(
+                    jnp.where((scenario.speed_kp == 0) & (scenario.speed_ki == 0), nan, v_ref)
+                    if c.example == "stability"
+                    else v_ref
+                ),
                 yaw_ref=y_ref,
                 omega_ref=jnp.asarray(om_ref, dtype),
                 path_y=path_y(scenario.path, ps.X).astype(dtype),
@@ -894,6 +934,12 @@ def _max(x: np.ndarray) -> float:
     return float(np.max(x)) if x.size else float("nan")
 
 
+def _min(x: np.ndarray) -> float:
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)]
+    return float(np.min(x)) if x.size else float("nan")
+
+
 def _rms(x: np.ndarray) -> float:
     x = np.asarray(x, float)
     return float(np.sqrt(np.mean(x**2))) if x.size else float("nan")
@@ -973,7 +1019,9 @@ class SimResult:
             "focus_steps": int(np.sum(fm)),
             "yaw_rms": _rms(yaw_err),
             "yaw_rms_focus": _rms(yaw_err[fm]),
+            # NaN (null) where the driver tracks no speed (stability examples)
             "speed_rms": _rms(np.asarray(lg.v_x) - np.asarray(lg.v_ref)),
+            "v_x_min": _min(np.asarray(lg.v_x)),
             "lateral_error_max": _max(np.abs(np.asarray(lg.Y) - np.asarray(lg.path_y))),
             "rear_slip_abs_max": _max(rear),
             "rear_slip_abs_p95": _pct(rear, 95),
@@ -1014,7 +1062,53 @@ class SimResult:
             m["t_integrated_median_us"] = _pct(self.timing["t_integrated"], 50) * 1e6
             m["integrated_iterations_p50"] = _pct(self.timing["integrated_iterations"], 50)
             m["timing_note"] = self.timing_note()
+        m["warnings"] = self.warnings()
         return m
+
+    def warnings(self) -> list[str]:
+        """What makes parts of this run unreliable, one sentence each (empty: none).
+
+        * the vehicle went backwards: the plant's slip and slip angles and the
+          drivers are written for forward driving, so the rest of the run is not
+          physical (e.g. ``cruise_lane_change --mu 0.3``, which spins the car);
+        * control steps that stopped at ``max_iter`` without meeting eps_r/eps_s,
+          or fell back (failed or non-finite solve, previous command held);
+        * steps where the shadow integrated MPC did not converge: e_sub there
+          compares with an unconverged reference.
+        """
+        lg, c = self.log, self.config
+        out = []
+        vx = np.asarray(lg.v_x, float)
+        if np.any(vx < 0):
+            k = int(np.argmax(vx < 0))
+            out.append(
+                f"the vehicle went backwards (v_x {np.nanmin(vx):.3g} m/s; first at "
+                f"t = {float(lg.t[k]):g} s): the plant and the drivers model forward "
+                "driving only, so the run is not physical from there on"
+            )
+        if c.formulation != "none":
+            st = np.asarray(lg.status)
+            n = len(st)
+            capped = int(np.sum(st == 1))
+            if capped:
+                out.append(
+                    f"{capped} of {n} control steps stopped at max_iter = {c.max_iter} "
+                    "without meeting eps_r / eps_s"
+                )
+            fb = int(np.sum(np.asarray(lg.fallback)))
+            if fb:
+                out.append(
+                    f"{fb} of {n} control steps fell back to the previous command "
+                    "(a failed or non-finite solve)"
+                )
+            if c.shadow:
+                bad = int(np.sum(np.asarray(lg.shadow_status) != 0))
+                if bad:
+                    out.append(
+                        f"the shadow integrated MPC did not converge on {bad} of {n} steps: "
+                        "e_sub there compares with an unconverged reference"
+                    )
+        return out
 
     def timing_note(self) -> str:
         return (
@@ -1046,8 +1140,8 @@ def simulate(
     scenario : a name of ``manoeuvres.SCENARIOS`` or a ScenarioSpec.
     config : SimConfig (default :func:`config_for` the scenario).
     duration : simulated time in s (default: the scenario's): finite and at
-        least one control period, ``CONTROL_DT`` (:func:`check_duration`);
-        rounded to whole control periods.
+        least one control period, ``CONTROL_DT``, and at most ``DURATION_MAX``
+        (:func:`check_duration`); rounded to whole control periods.
     mu : road friction override, finite in (0, MU_MAX] (:func:`check_mu`).
     fault : optional (n_steps,) bool mask of NaN measurements.
     dtype : float64 (default with x64) or float32.

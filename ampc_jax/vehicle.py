@@ -410,9 +410,11 @@ def wheel_speed_reference(
     """Rear wheel-speed reference of eq.VSC_objective (NOTES item 4), shape (2,).
 
     ``omega_ref = v_x (1 + S) / R_w`` with ``S = +slip_des`` when the driver
-    drives (``T_DTR >= 0``) and ``S = -slip_des`` when the driver brakes.
+    drives (``T_DTR > 0``), ``S = -slip_des`` when the driver brakes
+    (``T_DTR < 0``) and ``S = 0`` (free rolling) when the driver applies no
+    torque.
     """
-    s = jnp.where(driver_torque >= 0, slip_des, -slip_des)
+    s = slip_des * jnp.sign(driver_torque)
     om = v_x * (1.0 + s) / params.R_w
     return jnp.stack([om, om])
 

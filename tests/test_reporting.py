@@ -23,6 +23,7 @@ BASE = ["simulate", "cruise_lane_change", "--quiet", "--no-timing"]
         ("--duration", "nan", "finite time"),
         ("--duration", "inf", "finite time"),
         ("--duration", "two", "expected a number"),
+        ("--duration", "1e12", "at most 3600 s (72000 control steps) in one run"),
         ("--mu", "nan", "finite road friction in (0, 2]"),
         ("--mu", "-1", "(0, 2]"),
         ("--mu", "0", "(0, 2]"),

@@ -14,6 +14,7 @@ from ampc_jax.simulation import (
     CONTROLLER_DEFAULTS,
     SimConfig,
     Simulator,
+    baseline_config,
     build_topology,
     config_for,
     integrated_solver,
@@ -469,3 +470,89 @@ def test_metrics_report_first_and_warm_run_times(cruise_run, monkeypatch):
     res = simulate("cruise_lane_change", duration=SHORT, timing=False)  # compiled already
     assert res.wall_time == 0.125 and res.first_run_time != 0.125
     assert res.metrics()["realtime_factor"] == pytest.approx(SHORT / 0.125)
+
+
+def test_baseline_is_the_papers_comparison(capsys, tmp_path):
+    """--compare's baseline: LST alone for cruise control (same solver settings),
+    the driver alone for stability control; a run that is the baseline is refused."""
+    cruise = config_for("cruise_lane_change", relaxation=1.2)
+    base = baseline_config(cruise)
+    assert base.enabled == ("LST",) and base.formulation == "local_explicit"
+    assert base.relaxation == 1.2 and base.rho_scale == cruise.rho_scale
+    stab = baseline_config(config_for("stability_dlc", disabled=("WSC",)))
+    assert stab.formulation == "none"
+    with pytest.raises(ValueError, match=r"^compare: this run already is .* \(LST alone\)"):
+        baseline_config(base)
+    with pytest.raises(ValueError, match=r"the driver alone"):
+        baseline_config(stab)
+    code = main(
+        ["simulate", "stability_dlc", "--formulation", "none", "--compare", "--quiet",
+         "--out", str(tmp_path / "x")]
+    )  # fmt: skip
+    assert code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("ampc: error: --compare: this run already is"), err
+
+
+def test_cli_compare_writes_the_baseline_and_overlays_it(tmp_path, capsys):
+    """The paper's stability comparison (fig_VSC_straight_vehicle): VSC+WSC
+    against the driver alone, who spins the rear wheels on mu = 0.3."""
+    out = tmp_path / "cmp"
+    code = main(
+        ["simulate", "stability_launch_brake", "--duration", "2", "--compare", "--no-timing",
+         "--quiet", "--out", str(out)]
+    )  # fmt: skip
+    assert code == 0
+    text = capsys.readouterr().out
+    m = json.loads((out / "metrics.json").read_text())
+    b = json.loads((out / "baseline" / "metrics.json").read_text())
+    assert m["objectives"] == ["VSC", "WSC"] and b["formulation"] == "none"
+    assert b["steps"] == m["steps"] == 40
+    assert b["rear_slip_abs_max"] > 1.0 > 0.3 > m["rear_slip_abs_max"]
+    assert (out / "baseline" / "timeseries.csv").stat().st_size > 0
+    for name in ("vehicle_response.png", "yaw_error.png", "convergence.png"):
+        assert (out / name).stat().st_size > 0, name
+    line = next(x for x in text.splitlines() if x.startswith("VSC+WSC against the driver alone"))
+    assert f"rear |slip| max {b['rear_slip_abs_max']:.4g} -> {m['rear_slip_abs_max']:.4g}" in line
+
+
+def test_stability_logs_no_speed_reference(stability_run, cruise_run):
+    """The stability drivers apply an open-loop torque: no v_ref, no speed_rms."""
+    assert np.all(np.isnan(stability_run.log.v_ref))
+    assert np.isnan(stability_run.metrics()["speed_rms"])
+    assert np.all(np.isfinite(cruise_run.log.v_ref))
+    assert np.isfinite(cruise_run.metrics()["speed_rms"])
+
+
+def test_warnings_flag_unreliable_runs(cruise_run, capsys):
+    from ampc_jax.reporting import _summary
+
+    assert cruise_run.metrics()["warnings"] == []
+    lg = cruise_run.log
+    bad = replace(
+        cruise_run,
+        log=lg._replace(
+            status=np.where(np.arange(40) < 3, 1, 0),
+            shadow_status=np.where(np.arange(40) == 5, 1, 0),
+            fallback=np.arange(40) == 7,
+        ),
+    )
+    w = bad.metrics()["warnings"]
+    assert w[0] == (
+        f"3 of 40 control steps stopped at max_iter = {cruise_run.config.max_iter} "
+        "without meeting eps_r / eps_s"
+    )
+    assert w[1].startswith("1 of 40 control steps fell back to the previous command")
+    assert w[2].startswith("the shadow integrated MPC did not converge on 1 of 40 steps")
+    _summary(bad.metrics())
+    assert capsys.readouterr().out.count("  warning: ") == 3
+
+
+def test_warning_when_the_vehicle_goes_backwards():
+    """The driver alone spins out in the DLC and ends up reversing: the plant is
+    forward-only, so the run says so."""
+    cfg = config_for("stability_dlc", formulation="none", shadow=False)
+    m = simulate("stability_dlc", cfg).metrics()
+    assert m["v_x_min"] < 0
+    assert m["warnings"][0].startswith("the vehicle went backwards (v_x ")
+    assert "not physical from there on" in m["warnings"][0]

@@ -238,11 +238,15 @@ def test_yaw_rate_reference_linear_and_friction_limited():
 
 
 def test_wheel_speed_reference():
-    """NOTES item 4: omega_ref = v_x (1 + S) / R_w, S negative while the driver brakes."""
+    """NOTES item 4: omega_ref = v_x (1 + S) / R_w, S negative while the driver
+    brakes and zero while the driver applies no torque."""
     om = V.wheel_speed_reference(10.0, 500.0, P, 0.15)
     np.testing.assert_allclose(om, [10 * 1.15 / P.R_w] * 2)
     om = V.wheel_speed_reference(10.0, -500.0, P, 0.15)
     np.testing.assert_allclose(om, [10 * 0.85 / P.R_w] * 2)
+    # no driver torque: free rolling (it asked for +15 % slip with nothing driving)
+    om = V.wheel_speed_reference(10.0, 0.0, P, 0.15)
+    np.testing.assert_allclose(om, [10 / P.R_w] * 2)
     sm = V.stability_control_model(_meas(v_x=10.0), 0.0, 900.0, 1.0, P, StabilitySettings())
     np.testing.assert_allclose(sm.ref[1], [10 * 1.15 / P.R_w] * 2)
 
