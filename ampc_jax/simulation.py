@@ -118,6 +118,10 @@ _OK_STATUS = (0, 1)  # solved, max_iter_reached: applied; anything else falls ba
 # Cruise "none": no MPC, so a speed PI of the driver plays DTR (as in tests/test_manoeuvres.py).
 _CRUISE_DRIVER_PI = (1500.0, 200.0)
 
+V_X_BACKWARDS = -0.1
+"""m/s: a run whose v_x falls below this went backwards (:meth:`SimResult.warnings`);
+the margin keeps a car braked to a stop, which may creep by a few mm/s, out."""
+
 DURATION_MAX = 3600.0
 """Longest simulated time (s) :func:`simulate` accepts in one run: 72,000
 control steps, whose log (with each step's problem data) fills a few hundred MB."""
@@ -922,22 +926,23 @@ def simulate_batch(
 
 
 # --------------------------------------------------------------------------- results
-def _pct(x: np.ndarray, q: float) -> float:
+def _finite(x: np.ndarray, reduce: Any) -> float:
+    """``reduce`` over the finite entries of ``x``; NaN when there are none."""
     x = np.asarray(x, float)
     x = x[np.isfinite(x)]
-    return float(np.percentile(x, q)) if x.size else float("nan")
+    return float(reduce(x)) if x.size else float("nan")
+
+
+def _pct(x: np.ndarray, q: float) -> float:
+    return _finite(x, lambda v: np.percentile(v, q))
 
 
 def _max(x: np.ndarray) -> float:
-    x = np.asarray(x, float)
-    x = x[np.isfinite(x)]
-    return float(np.max(x)) if x.size else float("nan")
+    return _finite(x, np.max)
 
 
 def _min(x: np.ndarray) -> float:
-    x = np.asarray(x, float)
-    x = x[np.isfinite(x)]
-    return float(np.min(x)) if x.size else float("nan")
+    return _finite(x, np.min)
 
 
 def _rms(x: np.ndarray) -> float:
@@ -1079,8 +1084,9 @@ class SimResult:
         lg, c = self.log, self.config
         out = []
         vx = np.asarray(lg.v_x, float)
-        if np.any(vx < 0):
-            k = int(np.argmax(vx < 0))
+        back = vx < V_X_BACKWARDS
+        if np.any(back):
+            k = int(np.argmax(back))
             out.append(
                 f"the vehicle went backwards (v_x {np.nanmin(vx):.3g} m/s; first at "
                 f"t = {float(lg.t[k]):g} s): the plant and the drivers model forward "
