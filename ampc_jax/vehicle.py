@@ -298,9 +298,9 @@ class CruiseSettings(NamedTuple):
     r_dtr: float = 1.0 / 2000.0**2  # Nm^-2, R_(DTR)
     r_rtv: float = 1.0 / 500.0**2  # Nm^-2, R_(RTV)
     r_fdb: float = 1.0 / 1000.0**2  # Nm^-2, R_(FDB) (each of the two inputs)
-    dtr_max: float = 2000.0  # Nm, |T_DTR| bound
-    rtv_max: float = 500.0  # Nm, |T_RTV| bound
-    fdb_max: float = 1000.0  # Nm, FDB brakes in [-fdb_max, 0]
+    dtr_max: float = 2000.0  # Nm, |T_DTR| bound (1000 per rear wheel)
+    rtv_max: float = 1000.0  # Nm, |T_RTV| bound (docs/vehicle.md, "Actuator bounds")
+    fdb_max: float = 2000.0  # Nm, FDB brakes in [-fdb_max, 0]
     literal: bool = False  # True: paper's literal W_d (NOTES item 9)
 
     def validate(self) -> CruiseSettings:
@@ -352,8 +352,8 @@ class StabilitySettings(NamedTuple):
     r_tcr: float = 1.0 / 2000.0**2  # Nm^-2
     r_rtv: float = 1.0 / 500.0**2  # Nm^-2
     r_fdb: float = 1.0 / 1000.0**2  # Nm^-2 (each)
-    rtv_max: float = 500.0  # Nm
-    fdb_max: float = 1000.0  # Nm
+    rtv_max: float = 1000.0  # Nm (as CruiseSettings)
+    fdb_max: float = 2000.0  # Nm
     slip_des: float = 0.15  # S_x,des (eq.VSC_objective)
     literal: bool = False  # True: paper's literal W_d without tyre reaction
 

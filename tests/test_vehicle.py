@@ -89,8 +89,8 @@ def test_cruise_shapes_and_entries():
     np.testing.assert_allclose(cm.B[2], DT * np.array([fl, fr]).T, rtol=1e-13)
     np.testing.assert_allclose(cm.x0, [15.0, 0.3, 0.2])
     lb, ub = cm.lb, cm.ub
-    np.testing.assert_allclose(np.concatenate(lb), [-2000, -500, -1000, -1000])
-    np.testing.assert_allclose(np.concatenate(ub), [2000, 500, 0, 0])
+    np.testing.assert_allclose(np.concatenate(lb), [-2000, -1000, -2000, -2000])
+    np.testing.assert_allclose(np.concatenate(ub), [2000, 1000, 0, 0])
 
 
 def test_unit_rtv_gives_yaw_acceleration():
@@ -213,8 +213,8 @@ def test_tcr_bound_moves_with_driver_torque():
         sm = V.stability_control_model(_meas(), 0.0, T, 1.0, P, s)
         assert float(sm.lb[0][0]) == min(0.0, T)
         assert float(sm.ub[0][0]) == max(0.0, T)
-        np.testing.assert_allclose(np.concatenate(sm.lb[1:]), [-500, -1000, -1000])
-        np.testing.assert_allclose(np.concatenate(sm.ub[1:]), [500, 0, 0])
+        np.testing.assert_allclose(np.concatenate(sm.lb[1:]), [-1000, -2000, -2000])
+        np.testing.assert_allclose(np.concatenate(sm.ub[1:]), [1000, 0, 0])
     # traced driver torque under jit/vmap
     lbs = jax.vmap(lambda t: V.stability_bounds(t, s)[0][0])(jnp.array([100.0, -50.0]))
     np.testing.assert_allclose(lbs[:, 0], [0.0, -50.0])
