@@ -217,9 +217,13 @@ CONTROLLER_DEFAULTS: dict[str, dict[str, Any]] = {
     },
     "stability": {
         "warm_shift": 0,  # hold the previous iterate: p50 10 -> 4, p95 16 -> 15 (launch/brake)
-        "rho_scale": (1.5, 1.0),  # (VSC, WSC): p95 21 -> 16 (launch/brake), 50 -> 23 (DLC)
-        "relaxation": 1.6,
-        "integrated_rho_scale": 1.2,  # its own best at alpha 1.6
+        # (VSC, WSC) and alpha re-chosen in session 15 at the new actuator bounds, with
+        # Anderson acceleration, by closed-loop runs and the iteration *maximum*
+        # (docs/results.md, "Solver tuning"): max 24 / 25 -> 12 / 19 (launch/brake / DLC);
+        # session 12's (1.5, 1.0) at alpha 1.6 came from the p95 rule on the paper's solver
+        "rho_scale": (0.3, 3.0),
+        "relaxation": 1.5,
+        "integrated_rho_scale": 1.2,  # its own best at alpha 1.5 by the same rule (as at 1.6)
         "shadow_rho_scale": 1.0,  # shadow: p95 143 -> 84 iterations
         "shadow_relaxation": 1.8,
         # Anderson memory 3 (launch/brake / DLC, 2026-11-30, docs/results.md):
