@@ -556,3 +556,18 @@ def test_warning_when_the_vehicle_goes_backwards():
     assert m["v_x_min"] < 0
     assert m["warnings"][0].startswith("the vehicle went backwards (v_x ")
     assert "not physical from there on" in m["warnings"][0]
+
+
+@pytest.mark.parametrize(
+    ("scenario", "max_iterations"),
+    [("cruise_lane_change", 15), ("stability_launch_brake", 15), ("stability_dlc", 25)],
+)
+def test_headline_targets_of_the_full_manoeuvres(scenario, max_iterations):
+    """The issue's closed-loop targets on the whole manoeuvre at the defaults
+    (README "Targets"): Local Explicit within eps at every step, at most 15 / 25
+    iterations, e_sub p95 under 5 Nm against the converged shadow, no warnings."""
+    m = simulate(scenario).metrics()
+    assert m["iterations_max"] <= max_iterations, m["iterations_max"]
+    assert m["e_sub_p95"] < 5.0, m["e_sub_p95"]
+    assert m["status_counts"] == {0: m["steps"]} and m["shadow_not_solved"] == 0
+    assert m["warnings"] == []
