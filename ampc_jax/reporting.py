@@ -230,9 +230,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         )
         if args.set:
             cfg = with_settings(cfg, **_parse_settings(args.set, cfg.settings))
-        base_cfg = baseline_config(cfg) if args.compare else None
     except ValueError as exc:
-        return _fail(str(exc).replace("compare:", "--compare:", 1))
+        return _fail(str(exc))
+    try:
+        base_cfg = baseline_config(cfg) if args.compare else None
+    except ValueError as exc:  # "compare: ...", said as the flag
+        return _fail(f"--{exc}")
     problem = _output_dir(args.out)
     if problem:
         return _fail(problem)

@@ -488,17 +488,17 @@ def baseline_config(config: SimConfig) -> SimConfig:
     Cruise control: LST alone (YRT disabled), same solver settings, so the
     comparison shows what YRT adds (fig_CC_vehicle). Stability control: the
     driver alone, no MPC (fig_VSC_straight_vehicle, fig_VSC_DLC_vehicle).
-    ValueError if ``config`` already is that run.
+    ValueError if ``config`` already is that run, or runs no MPC (nothing to
+    compare).
     """
     if config.example == "cruise":
-        base = replace(config, disabled=("YRT",))
-        what = "LST alone"
+        if config.formulation == "none":
+            raise ValueError("compare: this run has no MPC (the driver's speed PI): no baseline")
+        base, what = replace(config, disabled=("YRT",)), "LST alone"
+        same = base.enabled == config.enabled
     else:
-        base = replace(config, formulation="none", disabled=())
-        what = "the driver alone"
-    same = base.formulation == config.formulation and (
-        base.formulation == "none" or base.enabled == config.enabled
-    )
+        base, what = replace(config, formulation="none", disabled=()), "the driver alone"
+        same = config.formulation == "none"
     if same:
         raise ValueError(
             f"compare: this run already is the {config.example} example's baseline ({what})"
