@@ -7,8 +7,7 @@ is set; flags already present are left as they are):
   ``--xla_cpu_enable_concurrency_optimized_scheduler=false``: an early
   mitigation of a deadlock of batched XLA:CPU programs on small (2-core)
   machines. The deadlock's cause was later found in XLA:CPU's batched LAPACK
-  kernels, which the solvers no longer call under ``vmap`` (README, "Known
-  issues").
+  kernels, which the solvers do not call under ``vmap`` (README, "Known issues").
 * with jaxlib 0.10.x only (the flag is experimental; an unknown flag aborts
   XLA), ``--xla_cpu_experimental_ynn_fusion_type=``: no YNNPACK fusions. On
   this package's small matrices YNNPACK's per-call overhead dominated:
@@ -21,7 +20,7 @@ is set; flags already present are left as they are):
   kernel. That covers the solvers' iteration loops up to N_p = 20 (and
   batches of 32 at N_p = 10 and 20): the ADMM iteration of the cruise example
   went from 0.30 to 0.16 us, a full step at N_p = 10 from 131 to 114 us, the
-  closed-loop DLC from 467x to 908x real time (README, "Known issues"). Skipped when
+  closed-loop DLC from 467x to 908x real time (docs/history.md). Skipped when
   ``XLA_FLAGS`` already sets ``--xla_backend_extra_options``.
 
 The flags only take effect if JAX's CPU backend has not started yet, so import
@@ -71,3 +70,45 @@ def _apply_xla_workaround() -> None:
 
 
 _apply_xla_workaround()
+
+# The public API, imported after the flags are set (importing JAX does not start
+# its CPU backend; the first computation does).
+from .admm import ADMMState, SolverParams, cold_state, shift_state, solver_params  # noqa: E402
+from .formulations import FORMULATIONS, IntegratedADMM, LocalExplicit, formulation  # noqa: E402
+from .problem import (  # noqa: E402
+    Agent,
+    Constraint,
+    Objective,
+    Problem,
+    ProblemData,
+    ProblemError,
+    Topology,
+    make_data,
+)
+from .reference import solve_reference  # noqa: E402
+from .results import STATUS, SolveResult, status_name  # noqa: E402
+
+__all__ = [
+    "FORMULATIONS",
+    "STATUS",
+    "ADMMState",
+    "Agent",
+    "Constraint",
+    "IntegratedADMM",
+    "LocalExplicit",
+    "Objective",
+    "Problem",
+    "ProblemData",
+    "ProblemError",
+    "SolveResult",
+    "SolverParams",
+    "Topology",
+    "__version__",
+    "cold_state",
+    "formulation",
+    "make_data",
+    "shift_state",
+    "solve_reference",
+    "solver_params",
+    "status_name",
+]

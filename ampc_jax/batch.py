@@ -9,18 +9,16 @@ leading axis is split across them with ``jax.shard_map`` (each device maps over
 its own share). On CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=N``
 (set before JAX starts) gives N devices, one per core.
 
-Measured on the cruise-control benchmark (``bench/bench_local_explicit.py``):
-chunks of 16 to 64 ran 2.5x faster than one ``vmap`` of 1,024 drives on one
-core.
+Chunks of 16 to 64 ran 2.5x faster than one ``vmap`` of 1,024 drives on one
+core (the cruise-control benchmark, ``bench/bench_local_explicit.py``).
 
-Deadlock (found and fixed, README "Known issues"): XLA:CPU's batched LAPACK
-kernels (Cholesky, triangular solve, LU, eigh) split their batch into tasks on
-the intra-op thread pool they themselves run on and block until those finish.
+Deadlock (README, "Known issues"): XLA:CPU's batched LAPACK kernels
+(Cholesky, triangular solve, LU, eigh) split their batch into tasks on the
+intra-op thread pool they themselves run on and block until those finish.
 With two CPU devices on two cores both pool threads can be such a kernel, and
-nothing is left to run the tasks: the N_p = 20 benchmark hung at batch 100 in
-every run. Local Explicit's batched factorisations are therefore pure JAX
-(``formulations._sweep_inverse``), and a vmapped solve contains no LAPACK call
-(``tests/test_batch.py`` checks both). The exact ``rho_method="eigh"`` and
+nothing is left to run the tasks. The solvers' batched factorisations are
+therefore pure JAX (:mod:`ampc_jax.admm.linalg`), and a vmapped solve contains
+no LAPACK call (``tests/batch/test_batch.py`` checks both). The exact ``rho_method="eigh"`` and
 rank-deficient constraint rows still use LAPACK eigensolvers: shard those
 with one device per process, or under a timeout.
 """

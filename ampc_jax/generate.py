@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .topology import Agent, Objective, Problem
+from .problem import Agent, Objective, Problem
 
 __all__ = ["random_problem"]
 

@@ -26,7 +26,7 @@ from typing import Any, NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["Prediction", "matrix_powers", "prediction_matrices", "quadratic_cost"]
+__all__ = ["Prediction", "matrix_powers", "block_toeplitz", "prediction_matrices", "quadratic_cost"]
 
 
 class Prediction(NamedTuple):
@@ -51,7 +51,7 @@ def matrix_powers(A: Any, n: int) -> Any:
     return jnp.stack(out)
 
 
-def _block_toeplitz(blocks: Any, horizon: int) -> Any:
+def block_toeplitz(blocks: Any, horizon: int) -> Any:
     """Lower block-Toeplitz matrix with ``blocks[d]`` on block diagonal d >= 0.
 
     blocks : (N_p, p, q) -> (N_p * p, N_p * q).
@@ -75,8 +75,8 @@ def prediction_matrices(A: Any, B: Any, C: Any, horizon: int) -> Prediction:
     CP = jnp.einsum("yx,kxz->kyz", C, P)  # C A^k
     ny, nx = C.shape
     Y_x = CP[1:].reshape(horizon * ny, nx)
-    Y_w = _block_toeplitz(CP[:horizon], horizon)
-    Y_u = _block_toeplitz(jnp.einsum("kyx,xb->kyb", CP[:horizon], B), horizon)
+    Y_w = block_toeplitz(CP[:horizon], horizon)
+    Y_u = block_toeplitz(jnp.einsum("kyx,xb->kyb", CP[:horizon], B), horizon)
     return Prediction(Y_u=Y_u, Y_x=Y_x, Y_w=Y_w)
 
 

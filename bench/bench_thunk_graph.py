@@ -38,25 +38,27 @@ CHILD = r"""
 import sys
 import jax
 jax.config.update("jax_enable_x64", True)
-from ampc_jax.formulations import cold_state
-from ampc_jax.integrated import merged_topology
-from ampc_jax.simulation import build_topology, config_for, integrated_solver, local_explicit_solver, simulate
+from ampc_jax.closed_loop import config_for, simulate
+from ampc_jax.formulations import IntegratedADMM, LocalExplicit
 
 scenario, solver_kind, anderson = sys.argv[1], sys.argv[2], sys.argv[3]
 kw = {} if anderson == "default" else {"anderson": int(anderson)}
 cfg = config_for(scenario, shadow=False, **kw)
 log = simulate(scenario, cfg, duration=1.0).log
-T = build_topology(cfg)[0]
+T = cfg.controller().topology
 data = jax.tree.map(lambda x: x[10], log.data)
 if solver_kind == "le":
-    solver = local_explicit_solver(cfg, T)
+    solver = LocalExplicit(T, max_iter=cfg.max_iter, anderson=cfg.anderson)
+    params = cfg.loop_params().controller.solver
     warm = jax.tree.map(lambda x: x[10], log.warm)
 else:
-    solver = integrated_solver(cfg, T)
-    warm = cold_state(merged_topology(T), data.A.dtype)
+    solver = IntegratedADMM(T, max_iter=cfg.max_iter, anderson=cfg.anderson)
+    params = solver.params(rho=cfg.integrated_rho_scale, relaxation=cfg.relaxation,
+                           tol_primal=cfg.tol_primal, tol_dual=cfg.tol_dual)
+    warm = solver.cold_state(data.A.dtype)
 print("MARKER-BEGIN", file=sys.stderr, flush=True)
-f = jax.jit(solver.solve).lower(data, None, warm).compile()
-jax.block_until_ready(f(data, None, warm))
+f = jax.jit(solver.solve).lower(data, params, warm).compile()
+jax.block_until_ready(f(data, params, warm))
 """
 
 

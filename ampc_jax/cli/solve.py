@@ -1,9 +1,4 @@
-"""The ``ampc`` command line.
-
-``ampc solve PROBLEM.json`` solves one MPC step of a problem file with the
-integrated MPC or Local Explicit and prints a table or (``--json``) one JSON
-object. Errors go to stderr with a non-zero exit code (2: bad input).
-"""
+"""``ampc solve``: one MPC step of a problem file, as a table or one JSON object."""
 
 from __future__ import annotations
 
@@ -16,18 +11,26 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["main"]
+from .args import arg_type, at_least_one, fail, flag_error, positive_finite, warnings_as_lines
 
-EXAMPLES = Path(__file__).parent / "examples"
+__all__ = ["add_solve_command", "cmd_solve"]
 
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 MAX_ITER_DEFAULT = 1000
 """``ampc solve --max-iter`` default (the Python API's ``LocalExplicit.max_iter`` is 500)."""
 
+TOL_DEFAULT = 1e-6
 
-def _fail(msg: str, code: int = 2) -> int:
-    print(f"ampc: error: {msg}", file=sys.stderr)
-    return code
+_FLAGS = {
+    "rho": "--rho",
+    "rho_scale": "--rho-scale",
+    "relaxation": "--relaxation",
+    "anderson": "--anderson",
+    "max_iter": "--max-iter",
+    "tol_primal": "--tol",
+    "tol_dual": "--tol",
+}
 
 
 def _resolve_problem(path: str) -> Path:
@@ -46,42 +49,11 @@ def _parse_rho(text: str) -> float | None:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"--rho: expected 'auto' or a positive number, got {text!r}"
+            f"expected 'auto' or a positive number, got {text!r}"
         ) from None
     if not np.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"--rho: must be a positive finite number, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text!r}")
     return value
-
-
-def _arg_type(check: Any, kind: type = float) -> Any:
-    """An argparse ``type``: parse with ``kind``, then ``check`` (ValueError -> usage error)."""
-
-    def parse(text: str) -> Any:
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(
-                f"expected {'an integer' if kind is int else 'a number'}, got {text!r}"
-            ) from None
-        try:
-            check(value)
-        except ValueError as exc:
-            # the check's message starts with the field name; argparse names the option
-            raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[-1]) from None
-        return value
-
-    parse.__name__ = kind.__name__  # argparse's "invalid <name> value" fallback
-    return parse
-
-
-def _positive_finite(value: float) -> None:
-    if not (np.isfinite(value) and value > 0):
-        raise ValueError(f"value: expected a positive finite number, got {value!r}")
-
-
-def _at_least_one(value: int) -> None:
-    if value < 1:
-        raise ValueError(f"value: expected an integer >= 1, got {value!r}")
 
 
 def _scales(text: str) -> tuple[float, ...]:
@@ -98,8 +70,6 @@ def _scales(text: str) -> tuple[float, ...]:
 
 def _warm_state(path: str, solver: Any, dt: Any) -> Any:
     """Read a previous ``--json`` output's ``warm_state`` and shift it one step."""
-    from .formulations import shift_state
-
     try:
         d = json.loads(Path(path).read_text())
     except (OSError, json.JSONDecodeError) as exc:
@@ -134,7 +104,7 @@ def _warm_state(path: str, solver: Any, dt: Any) -> Any:
         raise ValueError(
             f"--warm-start {path}: warm_state does not match this problem ({exc})"
         ) from exc
-    return shift_state(state)
+    return solver.shift(state)
 
 
 def _timed(fn: Any, *args: Any, repeats: int = 7) -> tuple[Any, float]:
@@ -150,118 +120,112 @@ def _timed(fn: Any, *args: Any, repeats: int = 7) -> tuple[Any, float]:
     return res, float(np.median(times))
 
 
+def _ignored(args: argparse.Namespace) -> list[str]:
+    """The flags given that the chosen solver does not use."""
+    pairs: list[tuple[str, bool]] = []
+    if args.formulation == "local_explicit" and args.solver is not None:
+        pairs.append(("--solver", True))
+    if args.formulation == "integrated" and args.solver in (None, "clarabel", "osqp"):
+        pairs += [
+            ("--rho", args.rho is not None),
+            ("--rho-scale", args.rho_scale is not None),
+            ("--relaxation", args.relaxation is not None),
+            ("--anderson", args.anderson is not None),
+            ("--max-iter", args.max_iter is not None),
+            ("--float32", args.float32),
+        ]
+    if args.rho is not None and args.rho_scale is not None:
+        pairs.append(("--rho-scale", True))  # a given rho is used as it is
+    return [flag for flag, given in pairs if given]
+
+
 def cmd_solve(args: argparse.Namespace) -> int:
+    """``ampc solve``: one MPC step; exit 0 with a solution, 1 without, 2 on bad input."""
     import jax
 
     if not args.float32:
         jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
-    from .formulations import LocalExplicit
-    from .integrated import IntegratedADMM, solve_reference
-    from .results import USABLE_STATUS, status_name
-    from .topology import Problem, ProblemError
+    from ..formulations import IntegratedADMM, LocalExplicit
+    from ..problem import Problem, ProblemError, merged_data, merged_topology
+    from ..reference import solve_reference
+    from ..results import USABLE_STATUS, status_name
 
     path = _resolve_problem(args.problem)
     if not path.exists():
         shipped = ", ".join(sorted(x.stem for x in EXAMPLES.glob("*.json")))
-        return _fail(f"{args.problem}: no such problem file, nor a shipped example ({shipped})")
+        return fail(f"{args.problem}: no such problem file, nor a shipped example ({shipped})")
+    ignored = _ignored(args)
+    if ignored:
+        who = (
+            "--formulation local_explicit"
+            if "--solver" in ignored and args.formulation == "local_explicit"
+            else f"--solver {args.solver or 'clarabel'}"
+        )
+        print(f"ampc: {', '.join(ignored)} ignored by {who}", file=sys.stderr)
+    max_iter = MAX_ITER_DEFAULT if args.max_iter is None else args.max_iter
+    scales = (1.0,) if args.rho_scale is None else args.rho_scale
+    relaxation = 1.0 if args.relaxation is None else args.relaxation
+    anderson = 0 if args.anderson is None else args.anderson
     try:
-        problem = Problem.from_json(path)
+        with warnings_as_lines():
+            problem = Problem.from_json(path)
         T = problem.topology
         dtype = jnp.float32 if args.float32 else jnp.float64
         data = problem.data(dtype)
         tol = args.tol
         compile_s = 0.0
-        if args.formulation == "local_explicit":
+        solver: Any = None
+        if args.formulation == "local_explicit" or args.solver == "jax":
+            if args.formulation == "integrated" and args.warm_start:
+                return fail("--warm-start: applies to --formulation local_explicit only")
+            if args.formulation == "integrated" and len(scales) != 1:
+                return fail("--rho-scale: the integrated problem has one objective; give one value")
+            kind = LocalExplicit if args.formulation == "local_explicit" else IntegratedADMM
             try:
-                solver = LocalExplicit(
+                solver = kind(
                     T,
-                    max_iter=args.max_iter,
-                    tol_primal=tol,
-                    tol_dual=tol,
-                    rho_scale=args.rho_scale,
-                    relaxation=args.relaxation,
-                    anderson=args.anderson,
+                    max_iter=max_iter,
+                    anderson=anderson,
+                    rho_method="power" if args.rho is None else "given",
                 )
             except ProblemError as e:  # the topology does not suit Local Explicit
-                return _fail(f"{path}: {e}")
+                return fail(f"{path}: {e}")
+            try:
+                params = solver.params(
+                    rho=scales if args.rho is None else args.rho,
+                    relaxation=relaxation,
+                    tol_primal=tol,
+                    tol_dual=tol,
+                    dtype=dtype,
+                )
             except ValueError as e:
-                return _fail(str(e))
-            rho = None if args.rho is None else jnp.full((T.n_objectives,), args.rho, dtype)
-            if rho is None:
-                _check_definite_hessians(T, problem.data(_check_dtype(args)))
-            warm = None
-            if args.warm_start:
-                warm = _warm_state(args.warm_start, solver, dtype)
+                return fail(flag_error(e, _FLAGS))
+            if args.rho is None:
+                check = problem.data(_check_dtype(args))
+                if kind is LocalExplicit:
+                    _check_definite_hessians(T, check)
+                else:
+                    _check_definite_hessians(merged_topology(T), merged_data(check))
+            warm = _warm_state(args.warm_start, solver, dtype) if args.warm_start else None
             fn = jax.jit(solver.solve)
             t0 = time.perf_counter()
-            compiled = fn.lower(data, rho, warm).compile()
+            compiled = fn.lower(data, params, warm).compile()
             compile_s = time.perf_counter() - t0
-            res, solve_s = _timed(compiled, data, rho, warm)
-            rho_out = {
-                n: float(r) for n, r in zip(T.objective_names, np.asarray(res.rho), strict=True)
-            }
+            res, solve_s = _timed(compiled, data, params, warm)
+            names = T.objective_names if kind is LocalExplicit else ("integrated",)
+            rho_out = {n: float(r) for n, r in zip(names, np.asarray(res.rho), strict=True)}
         else:
             if args.warm_start:
-                return _fail("--warm-start applies to --formulation local_explicit only")
-            if args.solver == "jax":
-                if len(args.rho_scale) != 1:
-                    return _fail(
-                        "rho_scale: the integrated problem has one objective; give one value"
-                    )
-                try:
-                    solver = IntegratedADMM(
-                        T,
-                        max_iter=args.max_iter,
-                        tol_primal=tol,
-                        tol_dual=tol,
-                        rho_scale=args.rho_scale[0],
-                        relaxation=args.relaxation,
-                        anderson=args.anderson,
-                    )
-                    _ = solver.inner  # validates the settings
-                except ValueError as e:
-                    return _fail(str(e))
-                rho = None if args.rho is None else jnp.asarray([args.rho], dtype)
-                if rho is None:
-                    from .integrated import merged_data, merged_topology
-
-                    _check_definite_hessians(
-                        merged_topology(T), merged_data(problem.data(_check_dtype(args)))
-                    )
-                fn = jax.jit(solver.solve)
-                t0 = time.perf_counter()
-                compiled = fn.lower(data, rho).compile()
-                compile_s = time.perf_counter() - t0
-                res, solve_s = _timed(compiled, data, rho)
-                rho_out = {"integrated": float(np.asarray(res.rho)[0])}
-            else:
-                ignored = [
-                    flag
-                    for flag, given in (
-                        ("--rho", args.rho is not None),
-                        ("--rho-scale", args.rho_scale != (1.0,)),
-                        ("--relaxation", args.relaxation != 1.0),
-                        ("--anderson", args.anderson != 0),
-                        ("--max-iter", args.max_iter != MAX_ITER_DEFAULT),
-                        ("--float32", args.float32),
-                    )
-                    if given
-                ]
-                if ignored:
-                    print(
-                        f"ampc: {', '.join(ignored)} ignored by --solver {args.solver} "
-                        f"(float64, its own iteration; --solver jax takes them)",
-                        file=sys.stderr,
-                    )
-                res = solve_reference(T, data, args.solver, eps=min(tol, 1e-6))
-                solve_s = float(res.state)
-                rho_out = {}
+                return fail("--warm-start: applies to --formulation local_explicit only")
+            res = solve_reference(T, data, args.solver or "clarabel", eps=min(tol, 1e-6))
+            solve_s = float(res.state)
+            rho_out = {}
     except ProblemError as exc:
-        return _fail(f"{path}: {exc}")
+        return fail(f"{path}: {exc}")
     except ValueError as exc:
-        return _fail(str(exc))
+        return fail(str(exc))
 
     per_agent = res.per_agent(T)
     u = np.asarray(res.u)
@@ -292,7 +256,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
         # the last iterate of an unconverged ADMM run that breaks a general row is no
         # input to apply; persistently so is what an infeasible problem looks like
         print(
-            f"ampc: stopped at --max-iter {args.max_iter} with inputs that violate a "
+            f"ampc: stopped at --max-iter {max_iter} with inputs that violate a "
             f"constraint row by {violation:.3g} (primal residual "
             f"{out['primal_residual']:.3g}): the problem may be infeasible "
             f"(--formulation integrated checks), or needs more iterations",
@@ -301,7 +265,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
         usable = False
     elif usable and int(res.status) == 1:  # max_iter_reached
         print(
-            f"ampc: not converged: stopped at --max-iter {args.max_iter} with primal "
+            f"ampc: not converged: stopped at --max-iter {max_iter} with primal "
             f"residual {out['primal_residual']:.3g}, dual {out['dual_residual']:.3g} "
             f"(tolerance {args.tol:g}); u is the last iterate, projected on the bounds",
             file=sys.stderr,
@@ -351,9 +315,9 @@ def _check_dtype(args: argparse.Namespace) -> Any:
 
 
 def _check_definite_hessians(T: Any, data: Any) -> None:
-    """Refuse a singular H_j (:func:`~ampc_jax.formulations.singular_hessians`)
+    """Refuse a singular H_j (:func:`~ampc_jax.admm.costs.singular_hessians`)
     naming the objective; ``--rho VALUE`` skips the check."""
-    from .formulations import singular_hessians
+    from ..admm.costs import singular_hessians
 
     for j, low, high in singular_hessians(T, data):
         name = f"objectives[{j}] ({T.objective_names[j]})"
@@ -407,85 +371,86 @@ def _print_table(out: dict[str, Any], T: Any) -> None:
         print(f"{name:<{width}}  {text}")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="ampc", description="Multi-objective agent-based MPC (Local Explicit ADMM) in JAX."
+def add_solve_command(sub: Any) -> None:
+    """Register ``ampc solve`` on the ``ampc`` sub-parsers."""
+    p = sub.add_parser(
+        "solve",
+        help="solve one MPC step of a JSON problem file",
+        description="Solve one MPC step of a problem file (JSON) or a shipped example.",
     )
-    sub = parser.add_subparsers(dest="command", required=True)
-
-    p = sub.add_parser("solve", help="solve one MPC step of a JSON problem file")
-    p.add_argument("problem", help="problem file (JSON), or the name of a shipped example")
     p.add_argument(
-        "--formulation", choices=["integrated", "local_explicit"], default="local_explicit"
+        "problem",
+        help="problem file (JSON; format in the README), or the name of a shipped "
+        "example (cruise_control)",
     )
-    p.add_argument("--rho", type=_parse_rho, default=None, help="'auto' (eq.opt_ro) or a value")
     p.add_argument(
-        "--tol",
-        type=_arg_type(_positive_finite),
-        default=1e-6,
-        help="eps_r = eps_s of eq.Convergence, absolute, on squared norms (default 1e-6)",
+        "--formulation",
+        choices=["local_explicit", "integrated"],
+        default="local_explicit",
+        help="Local Explicit (the paper's Formulation 3) or the integrated MPC "
+        "(default: local_explicit)",
+    )
+    p.add_argument(
+        "--solver",
+        choices=["clarabel", "osqp", "jax"],
+        default=None,
+        help="the integrated formulation's solver: Clarabel or OSQP (references), or "
+        "jax (the same explicit ADMM on the undecomposed problem) (default: clarabel)",
+    )
+    p.add_argument(
+        "--rho",
+        type=_parse_rho,
+        default=None,
+        metavar="auto|VALUE",
+        help="ADMM penalty: 'auto' for Ghadimi's optimal rho (paper eq. opt_ro), or a "
+        "value used for every objective as it is (default: auto)",
     )
     p.add_argument(
         "--rho-scale",
         type=_scales,
-        default=(1.0,),
-        help="factor(s) on eq.opt_ro's rho*: one value, or one per objective comma-separated",
+        default=None,
+        metavar="S[,S...]",
+        help="factor(s) on the optimal rho (eq. opt_ro): one value, or one per "
+        "objective comma-separated (default: 1)",
     )
     p.add_argument(
         "--relaxation",
         type=float,
-        default=1.0,
-        help="ADMM over-relaxation alpha in (0, 2); 1 = the paper's iteration",
+        default=None,
+        help="ADMM over-relaxation alpha in (0, 2); 1 is the paper's iteration (default: 1)",
     )
     p.add_argument(
         "--anderson",
         type=int,
         choices=(0, 1, 2, 3),
-        default=0,
-        help="Anderson acceleration memory of the ADMM iteration (0 = the paper's plain iteration)",
+        default=None,
+        help="Anderson acceleration memory of the ADMM iteration; 0 is the paper's "
+        "plain iteration (default: 0)",
+    )
+    p.add_argument(
+        "--tol",
+        type=arg_type(positive_finite),
+        default=TOL_DEFAULT,
+        help="eps_r = eps_s of the stopping rule (paper eq. Convergence), absolute, on "
+        f"squared residual norms in the constraint rows' units (default: {TOL_DEFAULT:g})",
     )
     p.add_argument(
         "--max-iter",
-        type=_arg_type(_at_least_one, int),
-        default=MAX_ITER_DEFAULT,
-        help=f"iteration cap (default {MAX_ITER_DEFAULT})",
+        type=arg_type(at_least_one, int),
+        default=None,
+        help=f"iteration cap (default: {MAX_ITER_DEFAULT})",
     )
     p.add_argument(
-        "--warm-start", metavar="FILE", help="a previous --json result to shift and reuse"
+        "--warm-start",
+        metavar="FILE",
+        default=None,
+        help="a previous --json result of this problem to shift one step and start "
+        "from (default: cold start)",
     )
     p.add_argument(
-        "--solver",
-        choices=["clarabel", "osqp", "jax"],
-        default="clarabel",
-        help="integrated formulation only: the reference solver",
+        "--float32",
+        action="store_true",
+        help="solve in float32 instead of float64 (default: float64)",
     )
-    p.add_argument("--float32", action="store_true", help="solve in float32 (default float64)")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--json", action="store_true", help="print one JSON object (default: a table)")
     p.set_defaults(func=cmd_solve)
-
-    _add_vehicle_commands(sub)
-    return parser
-
-
-def _add_vehicle_commands(sub: Any) -> None:
-    try:
-        from .simulation import add_cli_commands
-    except ImportError:
-        return
-    add_cli_commands(sub)
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    try:
-        return int(args.func(args))
-    except KeyboardInterrupt:
-        return _fail("interrupted", 130)
-    except BrokenPipeError:  # output piped into e.g. `head`: not an error of ours
-        sys.stdout = None
-        return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

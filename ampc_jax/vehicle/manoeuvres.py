@@ -16,7 +16,7 @@
 Dtypes: paths and scenarios hold *NumPy float64* arrays, whatever JAX's x64
 setting was when they were built (``SCENARIOS`` is built at import time,
 typically before x64 is enabled). A run casts them to its own dtype
-(``simulation.run_closed_loop``); JAX functions given them directly convert
+(``closed_loop.run_closed_loop``); JAX functions given them directly convert
 them to JAX's default float dtype. So 0.3 stays 0.3 in float64 runs, and no
 float32 array is frozen into the registry.
 
@@ -43,8 +43,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from ampc_jax.plant import PlantState, initial_state
-from ampc_jax.vehicle import CONTROL_DT, VehicleParams
+from .params import CONTROL_DT, VehicleParams
+from .plant import PlantState, initial_state
 
 __all__ = [
     "DLC_SECTIONS",
@@ -63,6 +63,7 @@ __all__ = [
     "make_scenario",
     "path_y",
     "path_slope",
+    "register_scenario",
     "single_lane_change",
     "stack_scenarios",
     "straight",
@@ -218,7 +219,7 @@ class ScenarioSpec(NamedTuple):
     """A registered manoeuvre: static description plus its array data."""
 
     name: str
-    example: str  # "cruise" or "stability"
+    example: str  # the name of a registered vehicle example (vehicle.EXAMPLES)
     duration: float  # s
     focus: tuple[float, float]  # s, window where both objectives are active
     description: str
@@ -303,7 +304,15 @@ def _stability_dlc() -> ScenarioSpec:
 SCENARIOS: dict[str, ScenarioSpec] = {
     s.name: s for s in (_cruise_lane_change(), _stability_launch_brake(), _stability_dlc())
 }
-"""Registry: name -> ScenarioSpec."""
+"""Registry: name -> ScenarioSpec (:func:`register_scenario` adds one)."""
+
+
+def register_scenario(spec: ScenarioSpec) -> ScenarioSpec:
+    """Add ``spec`` to :data:`SCENARIOS` (ValueError if another one has its name)."""
+    if spec.name in SCENARIOS and SCENARIOS[spec.name] is not spec:
+        raise ValueError(f"scenario: {spec.name!r} is already registered")
+    SCENARIOS[spec.name] = spec
+    return spec
 
 
 # --------------------------------------------------------------------------- drivers

@@ -1,140 +1,25 @@
-"""The integrated (centralised) MPC, eq.integMPC with eq_linear: the reference optimum.
+"""Reference solvers of the integrated MPC: Clarabel (interior point) and OSQP.
 
-Condensed over the horizon the integrated MPC is the QP::
-
-    min_U  1/2 U' H U + E' U      s.t.  Abar U <= bbar,
-    H = 2 (sum_j Y_u,j' Qbar_j Y_u,j + Rbar),
-    E = 2 sum_j Y_u,j' Qbar_j (Y_x,j X^(0) + Y_w,j Wbar - Xbar_ref,j),
-
-with U = [U^(0); ...; U^(N_p-1)] over all agents, Abar = I (x) A_in.
-
-Two solvers return the same :class:`~ampc_jax.results.SolveResult` as the
-formulations:
-
-* :func:`solve_reference` -- an established interior-point (Clarabel) or ADMM
-  (OSQP) solver, for tests and as the reference optimum;
-* :class:`IntegratedADMM` -- JAX-native: the same explicit ADMM machinery as
-  Local Explicit applied to the undecomposed problem, i.e. one objective that
-  stacks every C_j, Q_j and reference and owns all agents. Time ratios
-  (eq.t_ratio) compare like with like on the same stack.
+The condensed QP of eq.integMPC (:func:`~ampc_jax.problem.condensed_qp`)
+solved by established solvers that no one here wrote: the reference optimum
+every formulation is tested against. Both return the same
+:class:`~ampc_jax.results.SolveResult` as the formulations (numpy arrays).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any
 
-import jax.numpy as jnp
-import jax.scipy.linalg as jsl
 import numpy as np
 import scipy.sparse as sp
 
-from .formulations import LocalExplicit, local_costs
+from .problem.condensed import CondensedQP, condensed_qp, cost_offset
+from .problem.data import ProblemData
+from .problem.topology import Topology
 from .results import USABLE_STATUS, SolveResult
-from .topology import ProblemData, Topology
 
-__all__ = [
-    "CondensedQP",
-    "IntegratedADMM",
-    "OSQPReference",
-    "clarabel_solve",
-    "condensed_qp",
-    "merged_data",
-    "merged_topology",
-    "solve_reference",
-]
-
-
-class CondensedQP(NamedTuple):
-    """H (n, n), E (n,), G (m, n), h (m,) of ``min 1/2 U'HU + E'U s.t. G U <= h``."""
-
-    H: Any
-    E: Any
-    G: Any
-    h: Any
-
-
-def merged_topology(topology: Topology) -> Topology:
-    """The undecomposed problem as a one-objective topology (all agents, all outputs)."""
-    return Topology(
-        n_x=topology.n_x,
-        horizon=topology.horizon,
-        agent_names=topology.agent_names,
-        agent_sizes=topology.agent_sizes,
-        objective_names=("integrated",),
-        output_sizes=(sum(topology.output_sizes),),
-        groups=(tuple(range(topology.n_agents)),),
-        box_rows=topology.box_rows,
-        general_agents=topology.general_agents,
-        covered_inputs=topology.covered_inputs,
-        pinned_rank=topology.pinned_rank,
-        group_rank=(topology.total_rank,),
-        total_rank=topology.total_rank,
-        singular_r=topology.singular_r,
-    )
-
-
-def merged_data(data: ProblemData) -> ProblemData:
-    """Stack the objectives' C_j, block-diagonal Q_j and references into one objective."""
-    Q = jsl.block_diag(*data.Q)
-    return data._replace(
-        C=(jnp.concatenate(data.C, axis=0),),
-        Q=(Q,),
-        ref=(jnp.concatenate(data.ref, axis=1),),
-    )
-
-
-def condensed_qp(topology: Topology, data: ProblemData) -> CondensedQP:
-    """The integrated MPC as a condensed QP (jittable)."""
-    mt = merged_topology(topology)
-    H, E = local_costs(mt, merged_data(data))
-    G = jnp.kron(jnp.eye(topology.horizon, dtype=data.Ain.dtype), data.Ain)
-    return CondensedQP(H=H[0], E=E[0], G=G, h=data.bin.reshape(-1))
-
-
-@dataclass(frozen=True)
-class IntegratedADMM:
-    """JAX-native integrated MPC: explicit ADMM on the undecomposed problem.
-
-    Same settings and runners as :class:`~ampc_jax.formulations.LocalExplicit`;
-    rho from eq.opt_ro on the whole problem by default (``rho_scale`` is one
-    float here: there is one objective).
-    """
-
-    topology: Topology
-    max_iter: int = 2000
-    tol_primal: float = 1e-6
-    tol_dual: float = 1e-6
-    dual_residual: str = "slack"
-    rho_method: str = "power"
-    rho_iterations: int = 8
-    rho_scale: float = 1.0
-    relaxation: float = 1.0
-    anderson: int = 0
-
-    @property
-    def inner(self) -> LocalExplicit:
-        return LocalExplicit(
-            merged_topology(self.topology),
-            max_iter=self.max_iter,
-            tol_primal=self.tol_primal,
-            tol_dual=self.tol_dual,
-            dual_residual=self.dual_residual,
-            rho_method=self.rho_method,
-            rho_iterations=self.rho_iterations,
-            rho_scale=self.rho_scale,
-            relaxation=self.relaxation,
-            anderson=self.anderson,
-        )
-
-    def solve(self, data: ProblemData, rho: Any = None, warm: Any = None) -> SolveResult:
-        return self.inner.solve(merged_data(data), rho, warm)
-
-    def solve_fixed(
-        self, data: ProblemData, iterations: int, rho: Any = None, warm: Any = None
-    ) -> SolveResult:
-        return self.inner.solve_fixed(merged_data(data), iterations, rho, warm)
+__all__ = ["OSQPReference", "clarabel_solve", "reference_gap", "solve_reference"]
 
 
 def _numpy_qp(topology: Topology, data: ProblemData) -> CondensedQP:
@@ -161,23 +46,6 @@ def clarabel_solve(qp: CondensedQP, eps: float = 1e-9) -> Any:
     settings.tol_ktratio = min(1e-6, eps)
     cones = [clarabel.NonnegativeConeT(A.shape[0])] if A.shape[0] else []
     return clarabel.DefaultSolver(P, qp.E, A, qp.h, cones, settings).solve()
-
-
-def cost_offset(data: ProblemData) -> float:
-    """The constant the condensed QP drops: sum_j sum_k e_j,k' Q_j e_j,k, with
-    e_j,k = C_j x_free^(k+1) - ref_j^(k) the free response's tracking error
-    (numpy). ``1/2 U'HU + E'U + cost_offset`` is eq.integMPC's cost J(U) >= 0.
-    """
-    A = np.asarray(data.A, float)
-    x = np.asarray(data.x0, float)
-    w = np.asarray(data.w, float)
-    c0 = 0.0
-    for k in range(w.shape[0]):
-        x = A @ x + w[k]
-        for C, Q, ref in zip(data.C, data.Q, data.ref, strict=True):
-            e = np.asarray(C, float) @ x - np.asarray(ref, float)[k]
-            c0 += float(e @ np.asarray(Q, float) @ e)
-    return c0
 
 
 _REFERENCE_GAP = 1e-5

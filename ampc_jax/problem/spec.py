@@ -1,32 +1,16 @@
-"""Problem model of a multi-objective multi-agent control system (MACS).
+"""The user-facing problem description: agents, objectives, constraints, validated.
 
-The paper's section "Multi-objective MACS" (Notation) defines agents A_(i) with
-inputs U_(i), objectives O_j, the contribution flags G_j(i), the agent groups
-S_j = {i | G_j(i) = 1}, the contribution sets S_(i) = {j | G_j(i) = 1} and the
-multiplicities m_(i) = |S_(i)|. The integrated MPC (eq.integMPC, eq_linear)
-is defined by the shared model
+The paper's section "Multi-objective MACS" (Notation) and the integrated MPC
+(eq.integMPC, eq_linear), on the shared model::
 
     X^(k+1) = A_d X^(k) + sum_i B_d(i) U_(i)^(k) + W_d^(k)
     h_j = || C_j X^(k) - ref_j^(k) ||^2_{Q_j},   g_(i) = || U_(i)^(k) ||^2_{R_(i)}
     A_in U^(k) <= b_in^(k)
 
-Two layers live here:
-
-* :class:`Problem` -- the user-facing, validated description (from a JSON
-  problem file, a ``dict`` or Python objects). Every validation error is a
-  :class:`ProblemError` naming the offending field.
-* :class:`Topology` (static, hashable: sizes, names, groups and constraint-row
-  structure) plus :class:`ProblemData` (a pytree of arrays: the numbers). Only
-  the latter is traced by JAX, so a time-varying model (the vehicle examples
-  re-linearise every step) is rebuilt inside one compiled step, and batches of
-  scenarios are ``vmap``-ed over :class:`ProblemData`.
-
-Constraint rows. Per prediction step the rows of A_in are, in this order: one
-row ``+e_k`` for every input with a finite upper bound, one row ``-e_k`` for
-every input with a finite lower bound, then the general rows of each
-``constraints`` entry. Which rows exist is static (a bound's finiteness is part
-of the topology); their right-hand sides are data and may differ per step
-(NOTES item 11: the TCR agent's bound moves with the driver's torque).
+:class:`Problem` is built from a JSON problem file, a ``dict`` or Python
+objects; every validation error is a :class:`ProblemError` naming the
+offending field. Its :attr:`Problem.topology` (static) and
+:meth:`Problem.data` (arrays) are what the solvers take.
 """
 
 from __future__ import annotations
@@ -35,34 +19,22 @@ import json
 import math
 import warnings
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
-import jax.numpy as jnp
-import jax.scipy.linalg as jsl
 import numpy as np
 
-__all__ = [
-    "Agent",
-    "Constraint",
-    "GROUP_TOL",
-    "Objective",
-    "Problem",
-    "ProblemData",
-    "ProblemError",
-    "Topology",
-    "make_data",
-]
+from .data import ProblemData, make_data
+from .errors import ProblemError, ProblemWarning
+from .topology import Topology
+
+__all__ = ["Agent", "Constraint", "GROUP_TOL", "Objective", "Problem"]
 
 #: Relative tolerance of the model-derived agent groups: agent i is in S_j when
 #: ||C_j A_d^k B_d(i)||_F > GROUP_TOL * ||C_j||_F ||A_d^k||_F ||B_d(i)||_F for
 #: some k < N_p.
 GROUP_TOL = 1e-10
-
-
-class ProblemError(ValueError):
-    """Invalid problem description; the message names the field and what was expected."""
 
 
 # ----------------------------------------------------------------------------
@@ -493,6 +465,7 @@ class Problem:
                         f"objectives[{j}] ({name}): agents {missed} influence C_j X but are "
                         f"not in its 'agents' group; the decomposed formulations ignore that "
                         f"influence, so they will not reach the integrated optimum",
+                        ProblemWarning,
                         stacklevel=3,
                     )
             Cs.append(C)
@@ -607,350 +580,3 @@ def _influences(C: np.ndarray, powers: list[np.ndarray], B: np.ndarray) -> bool:
         if scale > 0 and np.linalg.norm(M) > GROUP_TOL * scale:
             return True
     return False
-
-
-# ----------------------------------------------------------------------------
-# Static structure
-# ----------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Topology:
-    """Static (hashable) structure of a MACS: sizes, names, groups, constraint rows.
-
-    Attributes
-    ----------
-    n_x, horizon : state size and N_p.
-    agent_names, agent_sizes : agents A_(i) and n_u(i).
-    objective_names, output_sizes : objectives O_j and n_y(j).
-    groups : S_j as sorted tuples of agent indices.
-    box_rows : per constraint row of the box part, ``(input index, +1 | -1)``.
-    general_agents : per general row, the agents it involves (``i -> c``).
-    covered_inputs : per input, whether any constraint row has a non-zero coefficient on it.
-    pinned_rank : per agent, rank of its own rows (box rows and single-agent general rows).
-    group_rank : per objective, rank of its per-step rows A_in,j (restricted to U_j);
-        full column rank lets eq.opt_ro skip any eigenvalue threshold (see
-        ``formulations.optimal_rho``).
-    total_rank : rank of all per-step rows A_in (the undecomposed problem's).
-    singular_r : agents whose weight R_(i) is singular, from the problem's
-        numbers when built by :class:`Problem` (``Topology.build`` takes it as
-        an argument, default none). Local Explicit's low-rank factorisation
-        needs R_(i) > 0; with other R in a ``ProblemData`` (a sweep, or a
-        gradient through R) keep them positive definite, or use
-        ``factorisation="dense"``.
-    """
-
-    n_x: int
-    horizon: int
-    agent_names: tuple[str, ...]
-    agent_sizes: tuple[int, ...]
-    objective_names: tuple[str, ...]
-    output_sizes: tuple[int, ...]
-    groups: tuple[tuple[int, ...], ...]
-    box_rows: tuple[tuple[int, int], ...]
-    general_agents: tuple[tuple[int, ...], ...]
-    covered_inputs: tuple[bool, ...] = ()
-    pinned_rank: tuple[int, ...] = ()
-    group_rank: tuple[int, ...] = ()
-    total_rank: int = 0
-    singular_r: tuple[int, ...] = ()
-
-    @classmethod
-    def build(
-        cls,
-        *,
-        n_x: int,
-        horizon: int,
-        agent_names: Sequence[str],
-        agent_sizes: Sequence[int],
-        objective_names: Sequence[str],
-        output_sizes: Sequence[int],
-        groups: Sequence[Sequence[int]],
-        finite_lb: Sequence[bool] | None = None,
-        finite_ub: Sequence[bool] | None = None,
-        general_rows: Sequence[np.ndarray] = (),
-        singular_r: Sequence[int] = (),
-    ) -> Topology:
-        """Build a topology. Bounds are finite by default (two box rows per input);
-        ``singular_r`` lists the agents whose R_(i) is singular."""
-        n_u = int(sum(agent_sizes))
-        finite_lb = np.ones(n_u, bool) if finite_lb is None else np.asarray(finite_lb, bool)
-        finite_ub = np.ones(n_u, bool) if finite_ub is None else np.asarray(finite_ub, bool)
-        box = tuple((int(k), 1) for k in np.nonzero(finite_ub)[0]) + tuple(
-            (int(k), -1) for k in np.nonzero(finite_lb)[0]
-        )
-        offsets = np.cumsum([0, *agent_sizes])
-        gen_agents = []
-        for rows in general_rows:
-            for r in np.atleast_2d(rows):
-                gen_agents.append(
-                    tuple(
-                        i
-                        for i in range(len(agent_sizes))
-                        if np.any(r[offsets[i] : offsets[i + 1]] != 0)
-                    )
-                )
-        # Rows that pin each agent by itself (its box rows and its single-agent
-        # general rows): their rank decides whether shared copies must agree.
-        allrows = (
-            np.concatenate([np.atleast_2d(r) for r in general_rows], 0)
-            if len(general_rows)
-            else np.zeros((0, n_u))
-        )
-        covered = np.zeros(n_u, bool)
-        for k, _ in box:
-            covered[k] = True
-        covered |= np.any(allrows != 0, axis=0)
-        ranks = []
-        for i in range(len(agent_sizes)):
-            own = [np.eye(n_u)[k] for k, _ in box if offsets[i] <= k < offsets[i + 1]]
-            own += [allrows[c] for c, ag in enumerate(gen_agents) if ag == (i,)]
-            block = np.array(own)[:, offsets[i] : offsets[i + 1]] if own else np.zeros((0, 1))
-            ranks.append(int(np.linalg.matrix_rank(block)) if own else 0)
-        topo = cls(
-            n_x=int(n_x),
-            horizon=int(horizon),
-            agent_names=tuple(agent_names),
-            agent_sizes=tuple(int(s) for s in agent_sizes),
-            objective_names=tuple(objective_names),
-            output_sizes=tuple(int(s) for s in output_sizes),
-            groups=tuple(tuple(sorted(int(i) for i in g)) for g in groups),
-            box_rows=box,
-            general_agents=tuple(gen_agents),
-            covered_inputs=tuple(bool(x) for x in covered),
-            pinned_rank=tuple(ranks),
-            singular_r=tuple(sorted(int(i) for i in singular_r)),
-        )
-        box_A = np.zeros((len(box), n_u))
-        for r, (k, s) in enumerate(box):
-            box_A[r, k] = s
-        Ain = np.concatenate([box_A, allrows], axis=0)
-        full = []
-        for j in range(topo.n_objectives):
-            Aj = Ain[np.ix_(topo.group_rows(j), topo.group_columns(j))]
-            full.append(int(np.linalg.matrix_rank(Aj)) if Aj.size else 0)
-        total = int(np.linalg.matrix_rank(Ain)) if Ain.size else 0
-        return replace(topo, group_rank=tuple(full), total_rank=total)
-
-    # -- derived sizes ----------------------------------------------------------
-    @property
-    def n_u(self) -> int:
-        return sum(self.agent_sizes)
-
-    @property
-    def n_agents(self) -> int:
-        return len(self.agent_sizes)
-
-    @property
-    def n_objectives(self) -> int:
-        return len(self.groups)
-
-    @property
-    def n_c(self) -> int:
-        """Constraint rows per step (box rows then general rows)."""
-        return len(self.box_rows) + len(self.general_agents)
-
-    @property
-    def agent_offsets(self) -> tuple[int, ...]:
-        return tuple(int(x) for x in np.cumsum([0, *self.agent_sizes]))
-
-    def agent_columns(self, i: int) -> tuple[int, ...]:
-        o = self.agent_offsets
-        return tuple(range(o[i], o[i + 1]))
-
-    def group_columns(self, j: int) -> tuple[int, ...]:
-        """Columns of U (within one step) belonging to U_j, in agent order."""
-        return tuple(k for i in self.groups[j] for k in self.agent_columns(i))
-
-    def contributions(self, i: int) -> tuple[int, ...]:
-        """S_(i): objectives agent i contributes to."""
-        return tuple(j for j, g in enumerate(self.groups) if i in g)
-
-    @property
-    def multiplicity(self) -> tuple[int, ...]:
-        """m_(i) = |S_(i)| for every agent."""
-        return tuple(len(self.contributions(i)) for i in range(self.n_agents))
-
-    def row_agents(self, c: int) -> tuple[int, ...]:
-        """Agents linearly involved in constraint row c (i -> c)."""
-        nb = len(self.box_rows)
-        if c < nb:
-            k = self.box_rows[c][0]
-            return (self.agent_of_input(k),)
-        return self.general_agents[c - nb]
-
-    def agent_of_input(self, k: int) -> int:
-        o = self.agent_offsets
-        return int(np.searchsorted(o, k, side="right") - 1)
-
-    def group_rows(self, j: int) -> tuple[int, ...]:
-        """Constraint rows objective j carries: rows whose agents all lie in S_j."""
-        g = set(self.groups[j])
-        return tuple(
-            c for c in range(self.n_c) if set(self.row_agents(c)) <= g and self.row_agents(c)
-        )
-
-    @property
-    def row_multiplicity(self) -> tuple[int, ...]:
-        """m_(c) (eq.F3_dual_1): number of objectives that carry row c."""
-        return tuple(
-            sum(c in self.group_rows(j) for j in range(self.n_objectives)) for c in range(self.n_c)
-        )
-
-    def check_local_explicit(self) -> None:
-        """Local Explicit's structural requirements (NOTES item 10).
-
-        * every input appears in at least one constraint row;
-        * every constraint row lies within one objective's group (so some
-          objective can evaluate it);
-        * every agent shared by several objectives is pinned by its own rows
-          (box rows or single-agent general rows of full column rank), so that
-          the shared slack makes the objectives' copies agree.
-        """
-        covered = np.asarray(self.covered_inputs, bool)
-        o = self.agent_offsets
-        for k in np.nonzero(~covered)[0]:
-            i = self.agent_of_input(int(k))
-            raise ProblemError(
-                f"agents[{i}] ({self.agent_names[i]}): input {int(k) - o[i]} appears in no "
-                f"constraint row; Local Explicit needs every input bounded (lb/ub) or in a "
-                f"'constraints' row (paper, after eq.F3_multiplier; NOTES item 10)"
-            )
-        mult = self.row_multiplicity
-        for c, m in enumerate(mult):
-            if m == 0:
-                names = [self.agent_names[i] for i in self.row_agents(c)]
-                raise ProblemError(
-                    f"constraints: row {c - len(self.box_rows)} couples agents {names} that share "
-                    f"no objective; Local Explicit needs each row's agents within one group"
-                )
-        for i in range(self.n_agents):
-            if len(self.contributions(i)) < 2:
-                continue
-            if self.pinned_rank[i] < self.agent_sizes[i]:
-                raise ProblemError(
-                    f"agents[{i}] ({self.agent_names[i]}): shared by objectives "
-                    f"{[self.objective_names[j] for j in self.contributions(i)]} but its inputs "
-                    f"are not pinned by rows of its own (bounds); their copies could disagree"
-                )
-
-
-# ----------------------------------------------------------------------------
-# The numbers
-# ----------------------------------------------------------------------------
-
-
-class ProblemData(NamedTuple):
-    """Arrays of one MACS instance (a pytree; ``vmap`` over a leading batch axis).
-
-    Attributes
-    ----------
-    A : (n_x, n_x) A_d.
-    B : (n_x, n_u) [B_d(i) for all agents], columns in agent order.
-    w : (N_p, n_x) W_d^(k), k = 0..N_p-1.
-    x0 : (n_x,) X^(0).
-    R : (n_u, n_u) block-diagonal [R_(i)].
-    C, Q, ref : tuples over objectives of (n_y, n_x), (n_y, n_y), (N_p, n_y);
-        ``ref[j][k]`` is the reference of C_j X^(k+1).
-    Ain : (n_c, n_u) constraint rows A_in (box rows, then general rows).
-    bin : (N_p, n_c) right-hand sides b_in^(k).
-    lb, ub : (N_p, n_u) the bounds (+-inf where absent), for projecting outputs.
-    """
-
-    A: Any
-    B: Any
-    w: Any
-    x0: Any
-    R: Any
-    C: tuple
-    Q: tuple
-    ref: tuple
-    Ain: Any
-    bin: Any
-    lb: Any
-    ub: Any
-
-
-def make_data(
-    topology: Topology,
-    *,
-    A: Any,
-    B: Any,
-    x0: Any,
-    C: Sequence[Any],
-    Q: Sequence[Any],
-    ref: Sequence[Any],
-    R: Any,
-    lb: Any,
-    ub: Any,
-    w: Any = None,
-    G: Any = None,
-    g: Any = None,
-    dtype: Any = None,
-) -> ProblemData:
-    """Assemble :class:`ProblemData` (jittable; used for time-varying models).
-
-    ``B`` may be the (n_x, n_u) concatenation or a sequence of per-agent blocks;
-    ``R`` the (n_u, n_u) matrix or a sequence of per-agent blocks; ``lb``/``ub``
-    (n_u,) or (N_p, n_u) (also sequences of per-agent vectors); ``ref[j]``
-    (n_y,) or (N_p, n_y); ``w`` (n_x,) or (N_p, n_x); ``G`` (n_g, n_u) and ``g``
-    (n_g,) or (N_p, n_g) the general rows.
-    """
-    Np, nx, nu = topology.horizon, topology.n_x, topology.n_u
-    if dtype is None:
-        dtype = jnp.result_type(float)
-
-    def arr(x: Any) -> Any:
-        return jnp.asarray(x, dtype=dtype)
-
-    def per_step(x: Any, n: int) -> Any:
-        x = arr(x)
-        return jnp.broadcast_to(x, (Np, n)) if x.ndim <= 1 else x
-
-    if isinstance(B, (list, tuple)):
-        B = jnp.concatenate([arr(b).reshape(nx, -1) for b in B], axis=1)
-    if isinstance(R, (list, tuple)):
-        blocks = [arr(r) for r in R]
-        blocks = [jnp.diag(r) if r.ndim == 1 else r.reshape(r.shape[-1], -1) for r in blocks]
-        R = jsl.block_diag(*blocks)
-    if isinstance(lb, (list, tuple)):
-        lb = jnp.concatenate([jnp.atleast_1d(arr(x)) for x in lb], axis=-1)
-    if isinstance(ub, (list, tuple)):
-        ub = jnp.concatenate([jnp.atleast_1d(arr(x)) for x in ub], axis=-1)
-    lb, ub = per_step(lb, nu), per_step(ub, nu)
-    w = jnp.zeros((Np, nx), dtype) if w is None else per_step(w, nx)
-    Cs = tuple(arr(c).reshape(ny, nx) for c, ny in zip(C, topology.output_sizes, strict=True))
-    Qs = tuple(
-        (jnp.diag(arr(q).reshape(ny)) if arr(q).ndim <= 1 else arr(q))
-        for q, ny in zip(Q, topology.output_sizes, strict=True)
-    )
-    refs = tuple(per_step(r, ny) for r, ny in zip(ref, topology.output_sizes, strict=True))
-
-    up = [k for k, s in topology.box_rows if s > 0]
-    lo = [k for k, s in topology.box_rows if s < 0]
-    box_A = np.zeros((len(topology.box_rows), nu))
-    for r, (k, s) in enumerate(topology.box_rows):
-        box_A[r, k] = s
-    box_b = jnp.concatenate([ub[:, up], -lb[:, lo]], axis=1)
-    n_gen = len(topology.general_agents)
-    if n_gen:
-        G = arr(G).reshape(n_gen, nu)
-        g = per_step(g, n_gen)
-        Ain = jnp.concatenate([arr(box_A), G], axis=0)
-        bin_ = jnp.concatenate([box_b, g], axis=1)
-    else:
-        Ain, bin_ = arr(box_A), box_b
-    return ProblemData(
-        A=arr(A),
-        B=arr(B),
-        w=w,
-        x0=arr(x0),
-        R=arr(R),
-        C=Cs,
-        Q=Qs,
-        ref=refs,
-        Ain=Ain,
-        bin=bin_,
-        lb=lb,
-        ub=ub,
-    )

@@ -10,7 +10,7 @@
   as box plots over the "whole" run and the "focus" window, plus time series;
 * :func:`yaw_error_comparison` -- yaw-rate error of several runs over time.
 
-All functions take :class:`~ampc_jax.simulation.SimResult` objects and return a
+All functions take :class:`~ampc_jax.closed_loop.SimResult` objects and return a
 matplotlib Figure; :func:`save` writes PNGs with the Agg backend (headless).
 """
 
@@ -36,7 +36,7 @@ def _shade(ax: Any, res: Any) -> None:
 def _label(res: Any) -> str:
     c = res.config
     if c.formulation == "none":
-        return "driver alone" if c.example == "stability" else "no MPC (driver PI)"
+        return c.vehicle_example.no_mpc_label
     return "+".join(c.enabled) + (
         "" if c.formulation == "local_explicit" else f" ({c.formulation})"
     )
@@ -46,36 +46,40 @@ def vehicle_response(results: Sequence[Any], labels: Sequence[str] | None = None
     """Vehicle response against references for one or several runs of one scenario.
 
     Panels: (a) speed v_x and v_ref (cruise control; the stability examples'
-    drivers apply an open-loop torque and track no speed), (b) yaw rate and the yaw-rate reference of
-    eq.CC_objective, (c) rear-wheel slip (with the desired slip of
-    eq.VSC_objective for stability runs), (d) rear wheel speeds against
-    omega_ref (stability) or the steering angle (cruise), (e) path Y(X).
-    The grey band is the focus window.
+    drivers apply an open-loop torque and track no speed), (b) yaw rate and the
+    yaw-rate reference of eq.CC_objective, (c) rear-wheel slip (with the desired
+    slip of eq.VSC_objective for stability runs), (d) rear wheel speeds against
+    omega_ref (stability) or the steering angle (cruise), (e) lateral error,
+    (f) path Y(X). Every run is drawn against its own references (dashed, in
+    its colour): each is scored against them. The grey band is the focus window.
     """
     labels = list(labels) if labels else [_label(r) for r in results]
     fig, axs = plt.subplots(3, 2, figsize=(11, 9), constrained_layout=True)
     ax = axs.ravel()
     r0 = results[0]
-    t0 = r0.log.t
     for a in ax[:5]:
         _shade(a, r0)
-    if np.any(np.isfinite(r0.log.v_ref)):  # the stability drivers track no speed
-        ax[0].plot(t0, r0.log.v_ref, "k--", lw=1, label="v_ref")
-    ax[1].plot(t0, r0.log.yaw_ref, "k--", lw=1, label="reference")
-    stab = r0.config.example == "stability"
-    if stab:
-        s = float(r0.config.settings.slip_des)
-        ax[2].axhline(s, color="k", ls="--", lw=0.8, label="+-S_x,des")
-        ax[2].axhline(-s, color="k", ls="--", lw=0.8)
-        ax[3].plot(t0, r0.log.omega_ref, "k--", lw=1, label="omega_ref")
+    # a wheel-speed panel where the example logs a wheel-speed reference
+    # (stability control); the steering angle otherwise
+    stab = bool(np.any(np.isfinite(r0.log.omega_ref)))
+    target = r0.config.vehicle_example.slip_target(r0.config.settings)
+    if target is not None:
+        ax[2].axhline(target, color="k", ls="--", lw=0.8, label="+-S_x,des")
+        ax[2].axhline(-target, color="k", ls="--", lw=0.8)
     for res, lab in zip(results, labels, strict=True):
         lg = res.log
         (line,) = ax[0].plot(lg.t, lg.v_x, lw=1.3, label=lab)
         col = line.get_color()
+        # each run against its own references (they follow its own speed and
+        # steering), dashed in its colour
+        if np.any(np.isfinite(lg.v_ref)):  # the stability drivers track no speed
+            ax[0].plot(lg.t, lg.v_ref, color=col, ls="--", lw=0.9, label=f"{lab} v_ref")
         ax[1].plot(lg.t, lg.yaw_rate, color=col, lw=1.3, label=lab)
+        ax[1].plot(lg.t, lg.yaw_ref, color=col, ls="--", lw=0.9, label=f"{lab} reference")
         ax[2].plot(lg.t, lg.slip[:, 2], color=col, lw=1.2, label=f"{lab} RL")
         ax[2].plot(lg.t, lg.slip[:, 3], color=col, lw=1.0, ls=":", label=f"{lab} RR")
         if stab:
+            ax[3].plot(lg.t, lg.omega_ref, color=col, ls="--", lw=0.9, label=f"{lab} omega_ref")
             ax[3].plot(lg.t, lg.omega[:, 2], color=col, lw=1.2, label=f"{lab} RL")
             ax[3].plot(lg.t, lg.omega[:, 3], color=col, lw=1.0, ls=":", label=f"{lab} RR")
         else:
@@ -126,7 +130,7 @@ def wheel_torques(res: Any) -> Any:
     for k, name in enumerate(c.input_names):
         if np.any(lg.u[:, k] != 0):
             axs[0].plot(lg.t, lg.u[:, k], lw=1.2, label=name)
-    if c.example == "stability":
+    if np.any(np.asarray(lg.driver_torque) != 0):
         axs[0].plot(lg.t, lg.driver_torque, "k--", lw=0.9, label="driver T_DTR")
     axs[0].set_ylabel("agent input (Nm)")
     for k, w in enumerate(("FL", "FR", "RL", "RR")):

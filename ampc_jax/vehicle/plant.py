@@ -65,7 +65,7 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import DTypeLike
 
-from ampc_jax.vehicle import CONTROL_DT, Measurement, VehicleParams, wheel_angles, wheel_positions
+from .params import CONTROL_DT, Measurement, VehicleParams, wheel_angles, wheel_positions
 
 __all__ = [
     "PLANT_DT",

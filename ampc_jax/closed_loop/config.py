@@ -1,0 +1,434 @@
+"""What a closed-loop run is: :class:`SimConfig`, validated, and its split into
+the static structure and the parameters a compiled loop takes.
+
+A :class:`SimConfig` holds every setting of a run (example, formulation,
+objectives, solver options, settings of the example, vehicle and driver). It
+splits into
+
+* the static part, :meth:`SimConfig.simulator` -- a hashable
+  :class:`~ampc_jax.closed_loop.simulate.Simulator` of the controller and
+  shadow's static options (iteration caps, Anderson memory, warm start,
+  horizon): what a compiled closed loop is specialised on;
+* :meth:`SimConfig.loop_params` -- :class:`LoopParams`, a pytree of arrays:
+  the controller's and the shadow's :class:`~ampc_jax.admm.SolverParams`
+  (rho scales, relaxation, tolerances) and the example's weights and bounds.
+  These are arguments of the compiled loop: every rho point of a sweep runs
+  the same program, and they can be vmapped and differentiated.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any, NamedTuple
+
+import jax
+import numpy as np
+
+from ..admm.acceleration import anderson_memory
+from ..admm.params import SolverParams
+from ..vehicle.examples import VehicleExample, example
+from ..vehicle.manoeuvres import SCENARIOS, DriverParams, ScenarioSpec
+from ..vehicle.models import ExampleSettings
+from ..vehicle.params import CONTROL_DT, VehicleParams
+
+__all__ = [
+    "DURATION_MAX",
+    "FORMULATIONS",
+    "MU_MAX",
+    "PAPER_SOLVER_OPTIONS",
+    "SOLVER_OPTIONS",
+    "ControllerParams",
+    "LoopParams",
+    "SimConfig",
+    "baseline_config",
+    "check_duration",
+    "check_mu",
+    "config_for",
+    "with_settings",
+]
+
+FORMULATIONS = ("local_explicit", "integrated", "none")
+"""Controllers of the closed loop: Local Explicit, IntegratedADMM, or no MPC
+(the example's driver alone)."""
+
+DURATION_MAX = 3600.0
+"""Longest simulated time (s) one run accepts: 72,000 control steps, whose log
+(with each step's problem data) fills a few hundred MB."""
+
+MU_MAX = 2.0
+"""Largest road friction accepted (dry asphalt is about 1; the plant's tyre
+model is not meant for more than racing slicks)."""
+
+SOLVER_OPTIONS = (
+    "warm_shift",
+    "rho_scale",
+    "relaxation",
+    "integrated_rho_scale",
+    "shadow_rho_scale",
+    "shadow_relaxation",
+    "anderson",
+)
+"""The :class:`SimConfig` fields whose ``None`` means the example's tuned default."""
+
+PAPER_SOLVER_OPTIONS: dict[str, Any] = {
+    "warm_shift": 1,
+    "rho_scale": 1.0,
+    "relaxation": 1.0,
+    "integrated_rho_scale": 1.0,
+    "shadow_rho_scale": 1.0,
+    "shadow_relaxation": 1.0,
+    "anderson": 0,
+}
+"""eq.opt_ro's rho* unscaled and no over-relaxation or acceleration: the
+paper's iteration (``config_for(..., **PAPER_SOLVER_OPTIONS)``); the warm start
+(which the paper does not use) is the standard shifted one."""
+
+
+def check_duration(duration: Any, name: str = "duration") -> float:
+    """A simulated time in s: finite, at least one control period (``CONTROL_DT``)
+    and at most ``DURATION_MAX``. Returns it as a float; ValueError naming ``name``."""
+    if isinstance(duration, bool) or not isinstance(
+        duration, (int, float, np.integer, np.floating)
+    ):
+        raise ValueError(f"{name}: expected a number of seconds, got {duration!r}")
+    d = float(duration)
+    # a few ulps of slack: 0.05 typed by hand is one control period
+    if not (np.isfinite(d) and d >= CONTROL_DT * (1.0 - 1e-9)):
+        raise ValueError(
+            f"{name}: expected a finite time of at least one control period "
+            f"({CONTROL_DT:g} s), got {duration!r}"
+        )
+    if d > DURATION_MAX:
+        raise ValueError(
+            f"{name}: expected at most {DURATION_MAX:g} s ({round(DURATION_MAX / CONTROL_DT)} "
+            f"control steps) in one run, got {duration!r}; split longer runs"
+        )
+    return d
+
+
+def check_mu(mu: Any, name: str = "mu") -> Any:
+    """Road friction: finite and in (0, MU_MAX]; a scalar or an array (checked
+    elementwise). Returns ``mu`` unchanged (traced values are not checked);
+    ValueError naming ``name`` otherwise."""
+    if isinstance(mu, jax.core.Tracer):
+        return mu
+    if isinstance(mu, bool):
+        raise ValueError(f"{name}: expected a friction coefficient, got {mu!r}")
+    try:
+        a = np.asarray(mu, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected a friction coefficient, got {mu!r}") from None
+    if a.size == 0 or not np.all(np.isfinite(a) & (a > 0) & (a <= MU_MAX)):
+        raise ValueError(f"{name}: expected a finite road friction in (0, {MU_MAX:g}], got {mu!r}")
+    return mu
+
+
+def _positive_float(name: str, v: Any) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+        raise ValueError(f"{name}: expected a positive finite number, got {v!r}")
+    if not (np.isfinite(v) and v > 0):
+        raise ValueError(f"{name}: expected a positive finite number, got {v!r}")
+    return float(v)
+
+
+def _positive_int(name: str, v: Any) -> int:
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+        raise ValueError(f"{name}: expected an integer >= 1, got {v!r}")
+    return int(v)
+
+
+class ControllerParams(NamedTuple):
+    """The controller's numbers (a pytree): its solver's parameters and the
+    example's settings (weights and bounds as leaves; horizon static)."""
+
+    solver: SolverParams
+    settings: ExampleSettings
+
+
+class LoopParams(NamedTuple):
+    """Every number a compiled closed loop takes as an argument (a pytree)."""
+
+    controller: ControllerParams
+    shadow: SolverParams
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Settings of one closed-loop run (validated on construction; hashable).
+
+    Parameters
+    ----------
+    example : a registered vehicle example's name (``"cruise"`` or ``"stability"``).
+    formulation : ``"local_explicit"`` (default), ``"integrated"`` (IntegratedADMM
+        as the controller) or ``"none"`` (no MPC: the example's driver alone).
+    disabled : objectives left out (``--disable``); the agents are the union of
+        the enabled objectives' groups, the others get zero input.
+    settings : the example's settings (weights, bounds, horizon N_p; default
+        the example's defaults).
+    tol_primal, tol_dual : eps_r and eps_s of eq.Convergence for the controller
+        (squared norms in Nm^2; the dual test is on the slack's change, the
+        formulations' default). Default 1.0.
+    max_iter : the controller's iteration cap (default 200).
+    warm_start : warm start from the previous step's state (default True;
+        ``False``: cold start at every step, as the paper).
+    warm_shift : 1 shifts the previous iterate one step along the horizon, 0
+        holds it (controller, shadow and r_time replay alike). ``None``: the
+        example's tuned default.
+    rho_scale : factor(s) on eq.opt_ro's rho_j* of Local Explicit, a float or
+        one per objective of the *example* in its order; with ``disabled``
+        objectives only the enabled entries are used. ``None``: the example's default.
+    relaxation : over-relaxation alpha in (0, 2) (1.0 is the paper's iteration),
+        used by Local Explicit *and* the IntegratedADMM it is compared with, so
+        that r_time compares like with like. ``None``: the example's default.
+    integrated_rho_scale : factor on rho* of the IntegratedADMM (controller
+        ``"integrated"`` and r_time replay), tuned for it by the same sweep.
+    anderson : Anderson memory 0..3 of Local Explicit and the IntegratedADMM it
+        is compared with (0 is plain ADMM); the shadow stays plain.
+    shadow : solve the integrated MPC in shadow, for e_sub (eq.suboptimality).
+    shadow_tol_primal, shadow_tol_dual, shadow_max_iter : the shadow's
+        tolerances (default 1e-8 Nm^2; floored at 1e-4 in float32) and cap (5000).
+    shadow_rho_scale, shadow_relaxation : the shadow's rho* factor and
+        over-relaxation; they change how fast it reaches its tolerance, not
+        the optimum. ``None``: the example's default.
+    vehicle, driver : vehicle and driver data (static: the plant, not tunables).
+
+    Every field is checked on construction (ValueError naming the field). The
+    examples' defaults and how they were chosen: ``docs/results.md``,
+    "Solver tuning".
+    """
+
+    example: str = "cruise"
+    formulation: str = "local_explicit"
+    disabled: tuple[str, ...] = ()
+    settings: Any = None
+    tol_primal: float = 1.0
+    tol_dual: float = 1.0
+    max_iter: int = 200
+    warm_start: bool = True
+    warm_shift: int | None = None
+    rho_scale: float | tuple[float, ...] | None = None
+    relaxation: float | None = None
+    integrated_rho_scale: float | None = None
+    anderson: int | None = None
+    shadow: bool = True
+    shadow_tol_primal: float = 1e-8
+    shadow_tol_dual: float = 1e-8
+    shadow_max_iter: int = 5000
+    shadow_rho_scale: float | None = None
+    shadow_relaxation: float | None = None
+    vehicle: VehicleParams = field(default_factory=VehicleParams)
+    driver: DriverParams = field(default_factory=DriverParams)
+
+    def __post_init__(self) -> None:
+        ex = example(self.example)
+        if self.formulation not in FORMULATIONS:
+            raise ValueError(
+                f"formulation: expected one of {FORMULATIONS}, got {self.formulation!r}"
+            )
+        if self.settings is None:
+            object.__setattr__(self, "settings", ex.settings_type())
+        if not isinstance(self.settings, ex.settings_type):
+            raise ValueError(
+                f"settings: expected {ex.settings_type.__name__} for the {ex.name} example, "
+                f"got {type(self.settings).__name__}"
+            )
+        self.settings.validate()
+        for name in ("tol_primal", "tol_dual", "shadow_tol_primal", "shadow_tol_dual"):
+            object.__setattr__(self, name, _positive_float(name, getattr(self, name)))
+        for name in ("max_iter", "shadow_max_iter"):
+            object.__setattr__(self, name, _positive_int(name, getattr(self, name)))
+        for name in ("warm_start", "shadow"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"{name}: expected True or False, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, bool(getattr(self, name)))
+        object.__setattr__(self, "disabled", tuple(self.disabled))
+        for name in self.disabled:
+            if name not in ex.objectives:
+                raise ValueError(
+                    f"disable: {name!r} is not an objective of the {ex.name} example; "
+                    f"expected one of {list(ex.objectives)}"
+                )
+        if not self.enabled and self.formulation != "none":
+            raise ValueError("disable: every objective is disabled; use formulation 'none'")
+        self._resolve_solver_options(ex)
+
+    def _resolve_solver_options(self, ex: VehicleExample) -> None:
+        """Fill ``None`` solver options from the example's defaults and validate them all."""
+        for name in SOLVER_OPTIONS:
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, ex.solver_defaults[name])
+        ws = self.warm_shift
+        if isinstance(ws, bool) or ws not in (0, 1):
+            raise ValueError(f"warm_shift: expected 0 (hold) or 1 (shift), got {ws!r}")
+        object.__setattr__(self, "warm_shift", int(ws))
+        object.__setattr__(self, "anderson", anderson_memory(self.anderson))
+        n_obj = len(ex.objectives)
+        scale = self.rho_scale
+        try:
+            arr = np.atleast_1d(np.asarray(scale, dtype=float))
+        except (TypeError, ValueError):
+            arr = np.array([np.nan])
+        if arr.ndim != 1 or arr.size not in (1, n_obj):
+            raise ValueError(
+                f"rho_scale: expected a float or {n_obj} values (one per objective of the "
+                f"{ex.name} example: {', '.join(ex.objectives)}), got {scale!r}"
+            )
+        if not np.all(np.isfinite(arr) & (arr > 0)):
+            raise ValueError(f"rho_scale: expected positive finite values, got {scale!r}")
+        # hashable and canonical: a float, or a tuple of floats (one per objective)
+        object.__setattr__(
+            self, "rho_scale", float(arr[0]) if arr.size == 1 else tuple(float(x) for x in arr)
+        )
+        for name in ("integrated_rho_scale", "shadow_rho_scale"):
+            object.__setattr__(self, name, _positive_float(name, getattr(self, name)))
+        for name in ("relaxation", "shadow_relaxation"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)):
+                raise ValueError(f"{name}: expected a float in (0, 2), got {v!r}")
+            if not 0.0 < float(v) < 2.0:
+                raise ValueError(f"{name}: expected a value in (0, 2), got {v!r}")
+            object.__setattr__(self, name, float(v))
+
+    # -- the example's structure -------------------------------------------------------
+    @property
+    def vehicle_example(self) -> VehicleExample:
+        return example(self.example)
+
+    @property
+    def enabled(self) -> tuple[str, ...]:
+        """Enabled objectives, in the example's order."""
+        return tuple(o for o in self.vehicle_example.objectives if o not in self.disabled)
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        return self.vehicle_example.input_names
+
+    @property
+    def horizon(self) -> int:
+        return int(self.settings.horizon)
+
+    @property
+    def enabled_rho_scale(self) -> float | tuple[float, ...]:
+        """``rho_scale`` restricted to the enabled objectives (what Local Explicit gets)."""
+        if isinstance(self.rho_scale, float):
+            return self.rho_scale
+        objs = self.vehicle_example.objectives
+        keep = [self.rho_scale[objs.index(o)] for o in self.enabled]
+        return keep[0] if len(keep) == 1 else tuple(keep)
+
+    def solver_options(self) -> dict[str, Any]:
+        """The solver options as resolved (for metrics.json)."""
+        out: dict[str, Any] = {name: getattr(self, name) for name in SOLVER_OPTIONS}
+        if isinstance(self.rho_scale, tuple):
+            out["rho_scale"] = list(self.rho_scale)
+        return out
+
+    # -- the split: static structure and parameters ---------------------------------
+    def controller(self) -> Any:
+        """The static controller (:class:`~ampc_jax.closed_loop.controller.Controller`),
+        or None for ``formulation="none"``."""
+        from .controller import Controller
+
+        if self.formulation == "none":
+            return None
+        return Controller(
+            example=self.vehicle_example,
+            enabled=self.enabled,
+            horizon=self.horizon,
+            formulation=self.formulation,
+            max_iter=self.max_iter,
+            anderson=self.anderson,
+            warm_start=self.warm_start,
+            warm_shift=self.warm_shift,
+            vehicle=self.vehicle,
+        )
+
+    def simulator(self) -> Any:
+        """The static closed loop (:class:`~ampc_jax.closed_loop.simulate.Simulator`)."""
+        from .shadow import IntegratedShadow
+        from .simulate import Simulator
+
+        ctrl = self.controller()
+        shadow = None
+        if ctrl is not None and self.shadow:
+            shadow = IntegratedShadow(ctrl.topology, self.shadow_max_iter, self.warm_shift)
+        return Simulator(self.vehicle_example, ctrl, shadow, self.vehicle, self.driver)
+
+    def loop_params(self, dtype: Any = None) -> LoopParams:
+        """The run's numbers as a :class:`LoopParams` pytree of ``dtype`` arrays.
+
+        The shadow's tolerances are floored at 1e-4 Nm^2 in float32 (its
+        resolution at these torques)."""
+        import jax.numpy as jnp
+
+        dt = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+        if self.formulation == "integrated":
+            rho = self.integrated_rho_scale
+        else:  # no enabled objective: formulation "none", no solver runs
+            rho = self.enabled_rho_scale if self.enabled else 1.0
+        n_rho = 1 if self.formulation == "integrated" else max(1, len(self.enabled))
+        from ..admm.params import solver_params
+
+        controller = solver_params(
+            n_rho,
+            rho=rho,
+            relaxation=self.relaxation,
+            tol_primal=self.tol_primal,
+            tol_dual=self.tol_dual,
+            dtype=dt,
+        )
+        floor = 1e-4 if dt == jnp.float32 else 0.0
+        shadow = solver_params(
+            1,
+            rho=self.shadow_rho_scale,
+            relaxation=self.shadow_relaxation,
+            tol_primal=max(self.shadow_tol_primal, floor),
+            tol_dual=max(self.shadow_tol_dual, floor),
+            dtype=dt,
+        )
+        return LoopParams(ControllerParams(controller, self.settings.as_arrays(dt)), shadow)
+
+
+def config_for(spec: ScenarioSpec | str, **overrides: Any) -> SimConfig:
+    """The :class:`SimConfig` of a registered scenario: its example, then ``overrides``
+    (``None`` values are left out: the defaults stay)."""
+    spec = SCENARIOS[spec] if isinstance(spec, str) else spec
+    kw: dict[str, Any] = {"example": spec.example}
+    kw.update({k: v for k, v in overrides.items() if v is not None})
+    return SimConfig(**kw)
+
+
+def baseline_config(config: SimConfig) -> SimConfig:
+    """The run the paper compares ``config`` with (section "Experimental Studies").
+
+    The example says which (:meth:`VehicleExample.baseline`): cruise control,
+    LST alone with the same solver settings (what YRT adds, fig_CC_vehicle);
+    stability control, the driver alone (fig_VSC_*_vehicle). ValueError
+    (starting with ``compare:``) when ``config`` already is that run, or runs no
+    MPC where the baseline needs one.
+    """
+    base = config.vehicle_example.baseline()
+    what = base["what"]
+    if base["formulation"] is None and config.formulation == "none":
+        raise ValueError(
+            f"compare: this run has no MPC ({config.vehicle_example.no_mpc_label}): no baseline"
+        )
+    changes: dict[str, Any] = {"disabled": base["disabled"]}
+    if base["formulation"] is not None:
+        changes["formulation"] = base["formulation"]
+    out = replace(config, **changes)
+    same = (
+        out.enabled == config.enabled
+        if base["formulation"] is None
+        else config.formulation == base["formulation"]
+    )
+    if same:
+        raise ValueError(
+            f"compare: this run already is the {config.example} example's baseline ({what})"
+        )
+    return out
+
+
+def with_settings(config: SimConfig, **fields: Any) -> SimConfig:
+    """A copy of ``config`` with some fields of its settings replaced (e.g. ``q_yrt=...``)."""
+    return replace(config, settings=config.settings.replace(**fields))

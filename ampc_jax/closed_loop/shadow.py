@@ -1,0 +1,64 @@
+"""The integrated MPC in shadow: an observer of the controller's problem, for e_sub.
+
+At every step the integrated MPC (eq.integMPC, :class:`~ampc_jax.formulations.IntegratedADMM`)
+solves the controller's own :class:`~ampc_jax.problem.ProblemData` at a tight
+tolerance, warm started from its own previous step, so the suboptimality of
+eq.suboptimality, ``e_sub = |U_distributed^(0) - U_integrated^(0)|`` (Nm per
+agent input), can be logged. It never acts on the vehicle.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from ..admm.params import SolverParams
+from ..admm.state import ADMMState
+from ..formulations import IntegratedADMM
+from ..problem.data import ProblemData
+from ..problem.topology import Topology
+from .controller import OK_STATUS
+
+__all__ = ["IntegratedShadow", "ShadowInfo"]
+
+
+class ShadowInfo(NamedTuple):
+    u0: Any  # (n_u,) the integrated optimum's first-step inputs (topology's inputs)
+    iterations: Any  # () int32
+    status: Any  # () int32
+
+
+@dataclass(frozen=True)
+class IntegratedShadow:
+    """The shadow integrated MPC of one controller topology (static).
+
+    ``max_iter`` (default 5000) caps it; ``warm_shift`` builds its warm start
+    as the controller's does.
+    """
+
+    topology: Topology
+    max_iter: int = 5000
+    warm_shift: int = 1
+
+    @property
+    def solver(self) -> IntegratedADMM:
+        return IntegratedADMM(self.topology, max_iter=self.max_iter)
+
+    def init(self, dtype: Any = None) -> ADMMState:
+        return self.solver.cold_state(dtype)
+
+    def observe(
+        self, state: ADMMState, params: SolverParams, data: ProblemData
+    ) -> tuple[ADMMState, ShadowInfo]:
+        """Solve ``data`` to the shadow's tolerance; the next warm state and what it found."""
+        solver = self.solver
+        sh = solver.solve(data, params, state)
+        ok = jnp.isin(sh.status, jnp.asarray(OK_STATUS)) & jnp.all(jnp.isfinite(sh.u0))
+        cold = solver.cold_state(jnp.result_type(data.A))
+        nxt = jax.tree.map(
+            lambda a, b: jnp.where(ok, a, b), solver.shift(sh.state, self.warm_shift), cold
+        )
+        return nxt, ShadowInfo(sh.u0, sh.iterations, sh.status)

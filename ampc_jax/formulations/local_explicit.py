@@ -1,0 +1,529 @@
+"""Formulation 3, Local Explicit (eq.integMPC_F3 to eq.F3_multiplier), in pure JAX.
+
+The integrated MPC is split into one local problem per objective O_j over the
+copies U_j of the inputs of its agent group S_j. The constraints become
+equalities with a shared non-negative slack Z (eq.integMPC_F3)::
+
+    Abar_j U_j - bbar_j + Z_j = 0,   Z >= 0,
+
+and consensus ADMM iterates, per objective j and constraint row c:
+
+* local update (eq.F3_primal), a closed-form solve with a matrix factorised
+  once per control step (the setup stores K_j^-1, formed or as its Woodbury
+  factors, and K_j^-1 E_j, so an iteration is a few small matrix-vector
+  products)::
+
+      U_j = -(H_j + rho_j Abar_j' Abar_j)^-1 [E_j + Abar_j' (rho_j (Z_j - bbar_j) + gamma_j)]
+
+* global update, the max-projection (eq.F3_dual) in its exact form for
+  per-objective rho_j (NOTES item 14: the rho-weighted average; the printed
+  equal-weight average converges to the wrong point when the rho_j differ)::
+
+      v_jc = (-Abar_j U_j - gamma_j / rho_j + bbar_j)_c
+      Z_c  = max(0, sum_j rho_j v_jc / sum_j rho_j)       (j over objectives carrying c)
+
+* dual update (eq.F3_multiplier)::
+
+      gamma_j += rho_j (Abar_j U_j - bbar_j + Z_j)
+
+* stopping rule (eq.Convergence, per objective, NOTES items 6 and 17)::
+
+      ||r_j||^2 = ||Abar_j U_j - bbar_j + Z_j||^2 <= eps_r,
+      ||s_j||^2 = ||rho_j (Z_j^q - Z_j^(q-1))||^2 <= eps_s     (``dual_residual="paper"``)
+      ||Z_j^q - Z_j^(q-1)||^2 <= eps_s                          (default, ``"slack"``)
+
+Objective j's local cost carries its outputs' tracking cost and the input
+weights of its agents shared out as R_(i) / m_(i) (eq.F1_obj with NOTES item 8).
+Objective j carries the constraint rows whose agents all lie in S_j
+(:meth:`Topology.group_rows`); a shared agent's box rows are shared by all its
+objectives, which is what makes their copies agree (NOTES item 10).
+
+The default rho_j is eq.opt_ro (:mod:`ampc_jax.admm.rho`), its extreme
+eigenvalues estimated by power iteration (``rho_method="eigh"`` for the exact
+form), times the factor ``params.rho`` (1: the paper's rho*).
+
+Implementation: the objectives are stacked on a leading axis and padded to
+common sizes (:mod:`ampc_jax.admm.layout`), so every per-objective operation
+is one batched call; the KKT solve of the local step is a strategy
+(:mod:`ampc_jax.admm.kkt`). The numbers one may tune (rho, relaxation,
+tolerances) are the :class:`~ampc_jax.admm.params.SolverParams` argument of
+:meth:`LocalExplicit.solve`, so one compiled step serves every setting.
+
+Everything here handles one problem; batch with ``jax.vmap`` over
+:class:`~ampc_jax.problem.ProblemData` and :class:`SolverParams` together.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..admm.acceleration import anderson_memory
+from ..admm.costs import padded_costs
+from ..admm.kkt import KKT_SOLVES, DenseKKT, WoodburyKKT, select_kkt
+from ..admm.layout import padded_layout
+from ..admm.params import DEFAULT_TOL, SolverParams, as_params, solver_params
+from ..admm.rho import eq_opt_ro
+from ..admm.runners import run_fixed, run_while
+from ..admm.state import ADMMState, cold_state, shift_state
+from ..problem.data import ProblemData
+from ..problem.topology import Topology
+from ..results import SolveResult
+
+__all__ = ["DUAL_RESIDUALS", "RHO_METHODS", "LocalExplicit", "LocalSetup"]
+
+RHO_METHODS = ("power", "eigh", "given")
+"""How rho_j is found: eq.opt_ro by power iteration or exactly (times
+``params.rho``), or ``params.rho`` itself."""
+
+DUAL_RESIDUALS = ("slack", "paper")
+"""Forms of the dual stopping test (see :class:`LocalExplicit`)."""
+
+
+class LocalSetup(NamedTuple):
+    """Per-control-step data of Local Explicit, built and factorised once.
+
+    The objectives are stacked on a leading axis j and padded to U inputs per
+    step (the largest n_u,j); n = N_p U. Padded inputs carry an identity block
+    in K_j and zero columns in A_in,j, so they never move. Constraint rows keep
+    the problem's own numbering (all n_c rows for every objective): the rows
+    objective j does not carry have zero coefficients and right-hand side and
+    are masked out of the global and dual steps. So the global step needs no
+    gather: the unpadded iterates are exactly those of the per-objective
+    algorithm.
+
+    Ain : (J, n_c, U) per-step rows A_in,j (Abar_j = I_{N_p} (x) A_in,j), zero
+        on rows objective j does not carry; or, with the compact row layout
+        (many more rows than any objective carries, ``COMPACT_ROWS``), (J, C, U)
+        with each objective's own rows gathered and padded with zero rows.
+    b : (J, N_p, n_c) bbar_j, step by step (zero on rows not carried); (J, N_p, C)
+        in the compact layout.
+    rho : (J,) rho_j.
+    Kinv : K_j^-1 in the KKT strategy's form (:mod:`ampc_jax.admm.kkt`),
+        K_j = H_j + rho_j Abar_j' Abar_j (factorised once).
+    KE : (J, n) K_j^-1 E_j.
+    inv_den : (n_c,) 1 / sum of rho_j over the objectives carrying each slack row.
+    lb, ub : (N_p, n_u) bounds, to project the consensus output.
+    relaxation, tol_primal, tol_dual : () from the :class:`SolverParams`.
+    """
+
+    Ain: Any
+    b: Any
+    rho: Any
+    Kinv: Any
+    KE: Any
+    inv_den: Any
+    lb: Any
+    ub: Any
+    relaxation: Any
+    tol_primal: Any
+    tol_dual: Any
+
+
+def _int_at_least(name: str, value: Any, low: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+        raise ValueError(f"{name}: expected an integer >= {low}, got {value!r}")
+    return int(value)
+
+
+@dataclass(frozen=True)
+class LocalExplicit:
+    """Local Explicit solver for one :class:`Topology`: its static options.
+
+    The static options fix the compiled program; the numbers one may tune are
+    the :class:`~ampc_jax.admm.params.SolverParams` argument of :meth:`solve`
+    (:meth:`params` builds them).
+
+    Parameters
+    ----------
+    topology : the MACS structure.
+    max_iter : iteration cap of the ``while_loop`` runner (default 500).
+    anderson : memory m of Anderson acceleration (type II, Walker and Ni 2011)
+        of the ADMM map (Z, gamma) -> (Z+, gamma+), 0 to 3; 0 (default) is the
+        paper's plain iteration. The closed-loop defaults use 3 (iterations
+        p95 17.2 -> 14 on the cruise example, the paper's rho* iteration's
+        median 190 -> 43 at N_p = 10, ``bench/bench_local_explicit.py``). An
+        accelerated iteration costs more, so with few iterations to save a
+        step can take longer. Gradients through an accelerated
+        :meth:`solve_fixed` match finite differences while the iterate is still
+        above round-off (once converged to machine precision Anderson's least
+        squares, and so the map, is no longer smooth).
+    kkt : the KKT solve strategy of the local step, one of
+        ``"auto"`` (default), ``"dense"``, ``"woodbury"``, ``"woodbury_factored"``
+        (:func:`~ampc_jax.admm.kkt.select_kkt`; each wins at some size there).
+    rho_method : ``"power"`` (default): rho_j = ``params.rho[j]`` times eq.opt_ro's
+        rho_j*, its extreme eigenvalues by ``rho_iterations`` steps of power
+        iteration (within 10 % of the exact value on the tested problems);
+        ``"eigh"``: the same with the exact eigendecomposition (the reference
+        the estimate is tested against; several times slower on XLA:CPU);
+        ``"given"``: rho_j = ``params.rho[j]`` (no eq.opt_ro; for an objective
+        whose H_j is singular, where eq.opt_ro is undefined). Objectives with
+        column-rank-deficient rows always use the exact form.
+    rho_iterations : power-iteration steps of ``rho_method="power"`` (default 8).
+    dual_residual : ``"slack"`` (default) tests ||Z_j^q - Z_j^(q-1)||^2 <= eps_s,
+        the slack's change in the constraints' own units; ``"paper"`` tests
+        ||s_j||^2 = ||rho_j (Z_j^q - Z_j^(q-1))||^2 <= eps_s as printed, to
+        reproduce the paper. The printed form scales with rho_j, and eq.opt_ro
+        gives rho_j ~ 1e-6 when the weights are per Nm^2 (vehicle examples): a
+        fixed eps_s is then met while Z still moves by newtons.
+        ``SolveResult.dual_residual`` reports the tested quantity.
+
+    Use :meth:`solve` for deployment (early stop) and :meth:`solve_fixed` for
+    differentiation (fixed iteration count under ``lax.scan``). Both are pure
+    and jittable; ``jax.jit(solver.solve)`` compiles one control step, which
+    serves every :class:`SolverParams` without recompiling.
+    """
+
+    topology: Topology
+    max_iter: int = 500
+    anderson: int = 0
+    kkt: str = "auto"
+    rho_method: str = "power"
+    rho_iterations: int = 8
+    dual_residual: str = "slack"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "max_iter", _int_at_least("max_iter", self.max_iter, 1))
+        object.__setattr__(self, "anderson", anderson_memory(self.anderson))
+        object.__setattr__(
+            self, "rho_iterations", _int_at_least("rho_iterations", self.rho_iterations, 1)
+        )
+        if self.kkt not in KKT_SOLVES:
+            raise ValueError(f"kkt: expected one of {KKT_SOLVES}, got {self.kkt!r}")
+        if self.rho_method not in RHO_METHODS:
+            raise ValueError(f"rho_method: expected one of {RHO_METHODS}, got {self.rho_method!r}")
+        if self.dual_residual not in DUAL_RESIDUALS:
+            raise ValueError(
+                f"dual_residual: expected one of {DUAL_RESIDUALS}, got {self.dual_residual!r}"
+            )
+        select_kkt(self.topology, self.kkt)  # validates the choice for this topology
+        self.topology.check_local_explicit()
+
+    # -- the parameters ---------------------------------------------------------------
+    @property
+    def n_rho(self) -> int:
+        """Number of rho_j (one per objective)."""
+        return self.topology.n_objectives
+
+    def params(
+        self,
+        rho: Any = 1.0,
+        relaxation: Any = 1.0,
+        tol_primal: Any = DEFAULT_TOL,
+        tol_dual: Any = DEFAULT_TOL,
+        dtype: Any = None,
+    ) -> SolverParams:
+        """Validated :class:`SolverParams` (see :func:`~ampc_jax.admm.params.solver_params`):
+        ``rho`` a factor on eq.opt_ro's rho* per objective (rho_j itself with
+        ``rho_method="given"``), default 1.0; ``relaxation`` in (0, 2), default
+        1.0 (the paper); tolerances default 1e-6."""
+        return solver_params(
+            self.n_rho,
+            rho=rho,
+            relaxation=relaxation,
+            tol_primal=tol_primal,
+            tol_dual=tol_dual,
+            dtype=dtype,
+        )
+
+    @property
+    def kkt_solve(self) -> DenseKKT | WoodburyKKT:
+        """The KKT solve strategy in use (``kkt`` resolved for this topology)."""
+        return select_kkt(self.topology, self.kkt)
+
+    def _own(self, j: int) -> np.ndarray:
+        """Positions of objective j's own rows (``Topology.group_rows(j)`` order)
+        among its R rows in the setup and the loop carry, in either row layout."""
+        return np.flatnonzero(padded_layout(self.topology).rows[j] < self.topology.n_c)
+
+    def objective_constraints(self, setup: LocalSetup, j: int) -> tuple[Any, Any]:
+        """(A_in,j (n_c,j x n_u,j), bbar_j (N_p x n_c,j)): objective j's own rows in
+        the order of ``Topology.group_rows(j)``, whatever the setup's row layout."""
+        own, u = self._own(j), padded_layout(self.topology).u_sizes[j]
+        return setup.Ain[j][own, :u], setup.b[j][:, own]
+
+    # -- per-step setup -----------------------------------------------------------
+    def setup(self, data: ProblemData, params: SolverParams | None = None) -> LocalSetup:
+        """Build H_j, E_j, rho_j and factorise (once per control step)."""
+        T = self.topology
+        lay = padded_layout(T)
+        J, U = lay.cols.shape
+        N = T.horizon
+        kkt = self.kkt_solve
+        dt = data.A.dtype
+        p = as_params(self.params(dtype=dt) if params is None else params, J, dt)
+        need_H = not kkt.woodbury or self.rho_method == "eigh" or not all(lay.full)
+        c = padded_costs(T, data, with_H=need_H)
+        # each objective's R rows (lay.rows; a padded index reads a zero row)
+        Aix = jnp.pad(data.Ain, ((0, 1), (0, 1)))  # padded row / column index -> 0
+        Ain = Aix[lay.rows[:, :, None], lay.cols[:, None, :]]  # (J, R, U)
+        bx = jnp.pad(data.bin, ((0, 0), (0, 1)))
+        b = jnp.moveaxis(bx[:, lay.rows], 1, 0)  # (J, N, R)
+        AtA = jnp.einsum("jcu,jcv->juv", Ain, Ain)
+        if self.rho_method == "given":
+            rho = p.rho
+        else:
+            own = tuple(self._own(j) for j in range(J))
+            star = eq_opt_ro(
+                T,
+                c,
+                Ain,
+                AtA,
+                own,
+                method=self.rho_method,
+                iterations=self.rho_iterations,
+                woodbury=kkt.woodbury,
+            )
+            rho = star * p.rho
+        # K_j = H_j + rho_j I (x) A_in,j'A_in,j, all objectives in one batched
+        # factorisation; an iteration then applies it (a few matrix-vector products)
+        Kinv = kkt.factor(c, rho[:, None, None] * AtA, N)
+        KE = kkt.apply(Kinv, c.E)
+        den = rho @ jnp.asarray(lay.carried, dt)
+        return LocalSetup(
+            Ain=Ain,
+            b=b,
+            rho=rho,
+            Kinv=Kinv,
+            KE=KE,
+            inv_den=1.0 / jnp.where(den > 0, den, 1.0),
+            lb=data.lb,
+            ub=data.ub,
+            relaxation=p.relaxation,
+            tol_primal=p.tol_primal,
+            tol_dual=p.tol_dual,
+        )
+
+    # -- states ----------------------------------------------------------------------
+    def cold_state(self, dtype: Any = None) -> ADMMState:
+        """The cold start of alg:1 (zeros, residuals inf)."""
+        return cold_state(self.topology, dtype)
+
+    @staticmethod
+    def shift(state: ADMMState, steps: int = 1) -> ADMMState:
+        """The MPC warm start from a previous iterate (:func:`~ampc_jax.admm.state.shift_state`)."""
+        return shift_state(state, steps)
+
+    def init(self, setup: LocalSetup, warm: ADMMState | None = None) -> ADMMState:
+        """Cold start (zeros, as alg:1) or a warm start state (see :meth:`shift`).
+
+        A warm state's U, Z and gamma are kept; its iteration count and
+        residuals are reset, so that a previous result's ``.state`` passed as
+        it is (not shifted) still iterates on the new data instead of being
+        taken as converged.
+        """
+        cold = cold_state(self.topology, setup.rho.dtype)
+        if warm is None:
+            return cold
+        if not isinstance(warm, ADMMState):
+            raise TypeError(
+                f"warm: expected an ADMMState (a previous result's .state, shifted), "
+                f"got {type(warm).__name__}"
+            )
+        for name, want, got in zip(ADMMState._fields, cold, warm, strict=True):
+            if jnp.shape(got) != want.shape:
+                raise ValueError(
+                    f"warm.{name}: expected shape {want.shape} for this topology "
+                    f"(ADMMState is in the solver's padded layout; build one from "
+                    f"per-objective arrays with LocalExplicit.state_of), got {jnp.shape(got)}"
+                )
+        return warm._replace(iteration=cold.iteration, primal=cold.primal, dual=cold.dual)
+
+    # -- per-objective views of the padded state ------------------------------------
+    def local_inputs(self, state: ADMMState) -> tuple:
+        """U_j, (N_p, n_u,j) per objective, columns in ``Topology.group_columns(j)`` order."""
+        lay = padded_layout(self.topology)
+        return tuple(state.U[..., j, :, :u] for j, u in enumerate(lay.u_sizes))
+
+    def multipliers(self, state: ADMMState) -> tuple:
+        """gamma_j, (N_p, n_c,j) per objective, rows in ``Topology.group_rows(j)`` order."""
+        J = self.topology.n_objectives
+        return tuple(state.gamma[..., j, :, :][..., self._own(j)] for j in range(J))
+
+    def state_of(self, U: Any, Z: Any, gamma: Any, dtype: Any = None) -> ADMMState:
+        """An :class:`ADMMState` from per-objective arrays (iteration 0, residuals inf).
+
+        U : one (N_p, n_u,j) array per objective; Z : (N_p, n_c);
+        gamma : one (N_p, n_c,j) array per objective (``Topology.group_rows(j)`` order).
+        """
+        T = self.topology
+        lay = padded_layout(T)
+        J, N = T.n_objectives, T.horizon
+        dt = jnp.result_type(float) if dtype is None else dtype
+        cold = cold_state(T, dt)
+        if len(U) != J or len(gamma) != J:
+            raise ValueError(
+                f"U, gamma: expected one array per objective ({J}), got {len(U)} and {len(gamma)}"
+            )
+        Up, gp = cold.U, cold.gamma
+        for j in range(J):
+            uj = jnp.asarray(U[j], dt)
+            gj = jnp.asarray(gamma[j], dt)
+            if uj.shape != (N, lay.u_sizes[j]):
+                raise ValueError(
+                    f"U[{j}]: expected shape {(N, lay.u_sizes[j])} (objective "
+                    f"{T.objective_names[j]!r}), got {uj.shape}"
+                )
+            if gj.shape != (N, lay.c_sizes[j]):
+                raise ValueError(
+                    f"gamma[{j}]: expected shape {(N, lay.c_sizes[j])} (objective "
+                    f"{T.objective_names[j]!r}), got {gj.shape}"
+                )
+            Up = Up.at[j, :, : lay.u_sizes[j]].set(uj)
+            gp = gp.at[j].set(gp[j].at[:, self._own(j)].set(gj))
+        Zp = jnp.asarray(Z, dt)
+        if Zp.shape != (N, T.n_c):
+            raise ValueError(f"Z: expected shape {(N, T.n_c)}, got {Zp.shape}")
+        return cold._replace(U=Up, Z=Zp, gamma=gp)
+
+    # -- one iteration --------------------------------------------------------------
+    def step(self, setup: LocalSetup, st: ADMMState) -> ADMMState:
+        """One ADMM iteration: local, global and dual updates (alg:1 steps 5-9)."""
+        T = self.topology
+        lay = padded_layout(T)
+        J, U = lay.cols.shape
+        N = T.horizon
+        rho = setup.rho[:, None, None]
+        if lay.compact:
+            # each objective's own rows, gathered (padded rows read a zero slack)
+            def rows_of(Z: Any) -> Any:  # (N, n_c) -> (J, N, C)
+                return jnp.moveaxis(jnp.pad(Z, ((0, 0), (0, 1)))[:, lay.rows], 0, 1)
+
+            def mask(x: Any) -> Any:  # padded rows stay zero by construction
+                return x
+
+            Z_old = rows_of(st.Z)
+        else:
+            # all rows in the problem's numbering; rows j does not carry meet zero
+            # columns in Ain and are masked out of the global and dual steps
+            M = jnp.asarray(lay.carried, setup.rho.dtype)[:, None, :]  # (J, 1, n_c)
+
+            def mask(x: Any) -> Any:
+                return M * x
+
+            Z_old = st.Z[None]
+        w = rho * (Z_old - setup.b) + st.gamma
+        # products with the per-step rows A_in,j (few x U) as broadcast sums, which
+        # XLA fuses with the elementwise work around them (a dot would be a call each)
+        Ain = setup.Ain[:, None]  # (J, 1, rows, U)
+        g = jnp.sum(w[..., None] * Ain, axis=2).reshape(J, N * U)  # Abar_j' w_j
+        Uf = -(setup.KE + self.kkt_solve.apply(setup.Kinv, g))  # eq.F3_primal
+        AU = jnp.sum(Uf.reshape(J, N, 1, U) * Ain, axis=3)  # Abar_j U_j
+        # over-relaxation (Boyd et al. 2011, sec. 3.4.3): alpha AU + (1 - alpha)(b - Z),
+        # written as b - Z + alpha (AU - (b - Z)), so that alpha = 1 is the paper's
+        # iteration. Rule: no (1 - alpha) term, because that product of a parameter
+        # alone is a thunk ready at the program's start, and more than 8 of those
+        # move the step onto XLA:CPU's thread pool (bench/bench_thunk_graph.py:
+        # the stability step's queue went from 8 to 9, and the step took 18 us longer)
+        bz = setup.b - Z_old
+        AUr = bz + setup.relaxation * (AU - bz)
+        # eq.F3_dual, rho-weighted (NOTES 14): Z_c = max(0, sum_j rho_j v_jc / sum_j rho_j)
+        rv = mask(rho * (setup.b - AUr) - st.gamma)  # rho_j v_j on the rows j carries
+        if lay.compact:
+            # sum over the objectives carrying each row: static gathers (a padded zero
+            # column for objectives without the row)
+            rvx = jnp.pad(rv, ((0, 0), (0, 0), (0, 1)))
+            Z = jnp.maximum(sum(rvx[j][:, lay.inv[j]] for j in range(J)) * setup.inv_den, 0.0)
+            Zs = rows_of(Z)
+        else:
+            Z = jnp.maximum(jnp.sum(rv, axis=0) * setup.inv_den, 0.0)
+            Zs = Z
+        r = mask(AU - setup.b + Zs)
+        gamma = st.gamma + rho * mask(AUr - setup.b + Zs)  # eq.F3_multiplier
+        dz = mask(Zs - Z_old)
+        if self.dual_residual == "paper":
+            dz = rho * dz  # s_j = rho_j (Z_j - Z_j_prev), eq.Convergence
+        primal = jnp.sum(r * r, axis=(1, 2))
+        dual = jnp.sum(dz * dz, axis=(1, 2))
+        return ADMMState(Uf.reshape(J, N, U), Z, gamma, st.iteration + 1, primal, dual)
+
+    def converged(self, setup: LocalSetup, state: ADMMState) -> Any:
+        """eq.Convergence for every objective (see ``dual_residual``)."""
+        return jnp.all((state.primal <= setup.tol_primal) & (state.dual <= setup.tol_dual))
+
+    # -- runners ---------------------------------------------------------------------
+    @staticmethod
+    def _point(st: ADMMState) -> Any:
+        """The ADMM map's argument (Z, gamma), flattened (U is an output only)."""
+        return jnp.concatenate([st.Z.ravel(), st.gamma.ravel()])
+
+    @staticmethod
+    def _at(x: Any, st: ADMMState) -> ADMMState:
+        nz = st.Z.size
+        return st._replace(Z=x[:nz].reshape(st.Z.shape), gamma=x[nz:].reshape(st.gamma.shape))
+
+    def run(self, setup: LocalSetup, state: ADMMState) -> ADMMState:
+        """``lax.while_loop`` until eq.Convergence or ``max_iter`` (deployment)."""
+        return run_while(
+            lambda st: self.step(setup, st),
+            lambda st: self.converged(setup, st),
+            state,
+            self.max_iter,
+            anderson=self.anderson,
+            point=self._point,
+            at=self._at,
+        )
+
+    def run_fixed(self, setup: LocalSetup, state: ADMMState, iterations: int) -> ADMMState:
+        """Exactly ``iterations`` iterations under ``lax.scan`` (differentiable)."""
+        return run_fixed(
+            lambda st: self.step(setup, st),
+            state,
+            iterations,
+            anderson=self.anderson,
+            point=self._point,
+            at=self._at,
+        )
+
+    def result(self, setup: LocalSetup, state: ADMMState) -> SolveResult:
+        """Consensus inputs (average of the copies, projected on the bounds) and status."""
+        T = self.topology
+        lay = padded_layout(T)
+        dt = setup.rho.dtype
+        P = jnp.asarray(lay.P, dt)
+        # sum_j U_j P_j as one broadcast sum (fused; padded columns select nothing)
+        total = jnp.sum(state.U[..., None] * P[:, None], axis=(0, 2))
+        count = lay.P.sum(axis=(0, 1))
+        u = jnp.clip(total / jnp.asarray(count, dt), setup.lb, setup.ub)
+        conv = self.converged(setup, state)
+        finite = jnp.all(jnp.isfinite(u)) & jnp.all(jnp.isfinite(state.primal))
+        status = jnp.where(~finite, 2, jnp.where(conv, 0, 1)).astype(jnp.int32)
+        return SolveResult(
+            u=u,
+            iterations=state.iteration,
+            converged=conv & finite,
+            status=status,
+            primal_residual=state.primal,
+            dual_residual=state.dual,
+            rho=setup.rho,
+            state=state,
+        )
+
+    def solve(
+        self,
+        data: ProblemData,
+        params: SolverParams | None = None,
+        warm: ADMMState | None = None,
+    ) -> SolveResult:
+        """Full control step: setup, factorise, rho, iterate to tolerance.
+
+        ``params``: the :class:`SolverParams` (default :meth:`params` ()), an
+        argument of the compiled step; ``warm``: a previous state (:meth:`shift`).
+        """
+        setup = self.setup(data, params)
+        return self.result(setup, self.run(setup, self.init(setup, warm)))
+
+    def solve_fixed(
+        self,
+        data: ProblemData,
+        iterations: int,
+        params: SolverParams | None = None,
+        warm: ADMMState | None = None,
+    ) -> SolveResult:
+        """Full control step with a fixed iteration count (for ``jax.grad``, also
+        with respect to ``params``)."""
+        setup = self.setup(data, params)
+        return self.result(setup, self.run_fixed(setup, self.init(setup, warm), iterations))
