@@ -43,6 +43,7 @@ __all__ = [
     "baseline_config",
     "check_duration",
     "check_mu",
+    "check_steps",
     "config_for",
     "with_settings",
 ]
@@ -121,6 +122,11 @@ def check_mu(mu: Any, name: str = "mu") -> Any:
     if a.size == 0 or not np.all(np.isfinite(a) & (a > 0) & (a <= MU_MAX)):
         raise ValueError(f"{name}: expected a finite road friction in (0, {MU_MAX:g}], got {mu!r}")
     return mu
+
+
+def check_steps(n_steps: Any, name: str = "n_steps") -> int:
+    """A number of control steps: an integer >= 1 (ValueError naming ``name``)."""
+    return _positive_int(name, n_steps)
 
 
 def _positive_float(name: str, v: Any) -> float:

@@ -49,7 +49,7 @@ from ..vehicle.manoeuvres import (
 from ..vehicle.models import yaw_rate_reference
 from ..vehicle.params import CONTROL_DT, VehicleParams
 from ..vehicle.plant import measure, plant_step
-from .config import LoopParams, SimConfig, _positive_int, check_duration, check_mu, config_for
+from .config import LoopParams, SimConfig, check_duration, check_mu, check_steps, config_for
 from .controller import Controller, DriverInputs
 from .metrics import SimResult
 from .shadow import IntegratedShadow
@@ -298,7 +298,7 @@ def simulate_batch(
     :class:`LoopParams` with a leading batch axis on every leaf (one parameter
     point per case), or None for ``config.loop_params(dtype)`` for all.
     """
-    n_steps = _positive_int("n_steps", n_steps)
+    n_steps = check_steps(n_steps)
     dtype = dtype or jnp.result_type(float)
     scenarios = _cast(scenarios, dtype)
     if mu is not None:

@@ -1,4 +1,5 @@
-"""Problem model: groups, derived quantities and every bad input's message."""
+"""ampc_jax.problem: the problem description (spec), its topology and data: groups,
+derived quantities and every bad input's message."""
 
 import copy
 import json
@@ -7,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from ampc_jax.topology import Agent, Objective, Problem, ProblemError
+from ampc_jax.problem import Agent, Objective, Problem, ProblemError, ProblemWarning
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -59,7 +60,7 @@ def test_group_needs_horizon_long_enough():
 def test_explicit_group_and_warning_for_ignored_influence():
     d = base()
     d["objectives"][0]["agents"] = ["a"]
-    with pytest.warns(UserWarning, match=r"agents \['b'\] influence C_j X"):
+    with pytest.warns(ProblemWarning, match=r"agents \['b'\] influence C_j X"):
         p = Problem.from_dict(d)
     assert p.topology.groups[0] == (0,)
 
@@ -257,8 +258,10 @@ def test_uncovered_input_refused_for_local_explicit():
     with pytest.raises(
         ProblemError,
         match=r"agents\[2\] \(c\): input 0 appears in no constraint row.*NOTES item 10",
-    ):
+    ) as e:
         p.check_local_explicit()
+    # the message suggests the fix
+    assert "give the agent finite 'lb' and 'ub'" in str(e.value)
 
 
 def test_shared_agent_needs_own_rows():

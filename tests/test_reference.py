@@ -1,7 +1,6 @@
-"""The integrated MPC's own solvers against Clarabel's integrated optimum:
-IntegratedADMM (eq.integMPC by the explicit ADMM of Local Explicit on the
-undecomposed problem), OSQP through ``solve_reference`` and ``OSQPReference``'s
-setup / update / solve story."""
+"""ampc_jax.reference and ampc_jax.problem.condensed: the condensed integrated QP is
+the definition's cost, OSQP (``solve_reference`` and ``OSQPReference``'s
+setup / update / solve story) agrees with Clarabel, and the status mapping."""
 
 import jax
 import jax.numpy as jnp
@@ -10,14 +9,8 @@ import pytest
 
 from ampc_jax.formulations import LocalExplicit
 from ampc_jax.generate import random_problem
-from ampc_jax.integrated import (
-    IntegratedADMM,
-    OSQPReference,
-    condensed_qp,
-    cost_offset,
-    solve_reference,
-)
-from ampc_jax.topology import Constraint, Objective, Problem
+from ampc_jax.problem import Constraint, Objective, Problem, condensed_qp, cost_offset
+from ampc_jax.reference import OSQPReference, _reference_status, solve_reference
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -114,28 +107,6 @@ def test_condensed_qp_is_the_integrated_cost(n_obj, shared):
             lb, ub = np.asarray(d.lb), np.asarray(d.ub)
             rows = np.sort(np.concatenate([U - ub, lb - U], axis=1), axis=1)
             np.testing.assert_allclose(np.sort((G @ u - h).reshape(T.horizon, -1), axis=1), rows)
-
-
-@pytest.mark.parametrize(
-    "n_obj,shared,rich",
-    [(2, "chain", False), (2, "all", True), (3, "both", True)],
-)
-def test_integrated_admm_matches_clarabel(n_obj, shared, rich):
-    problems = [
-        random_problem(seed, n_obj, shared=shared, horizon=8, **(RICH if rich else {}))
-        for seed in range(4)
-    ]
-    T = problems[0].topology
-    assert all(p.topology == T for p in problems)
-    solver = IntegratedADMM(T, max_iter=30000, tol_primal=1e-14, tol_dual=1e-14)
-    res = jax.jit(jax.vmap(solver.solve))(stack([p.data() for p in problems]))
-    assert np.all(np.asarray(res.status) == 0), np.asarray(res.iterations)
-    active = 0
-    for b, p in enumerate(problems):
-        ref = clarabel(p)
-        assert_close(res.u0[b], ref.u[0], what=f"problem {b}")
-        active += n_active(p, ref.u)
-    assert active > 0, "the problems must have active bounds"
 
 
 @pytest.mark.parametrize("n_obj,shared", [(2, "chain"), (3, "both")])
@@ -235,8 +206,6 @@ def test_osqp_reference_update_with_new_general_row_coefficients():
 )
 def test_reference_status_names(text, code):
     """Clarabel's and OSQP's status texts as STATUS codes (inaccurate apart)."""
-    from ampc_jax.integrated import _reference_status
-
     assert _reference_status(text) == code
 
 
@@ -259,6 +228,7 @@ def test_clarabel_solved_with_a_large_gap_in_the_full_cost_is_inaccurate():
         ref = solve_reference(p.topology, p.data())
         assert ref.status == want, (scale, ref.status)
         if want == 5:
-            le = LocalExplicit(p.topology, max_iter=60000, tol_primal=1e-16, tol_dual=1e-16)
-            best = definition_cost(p, np.asarray(jax.jit(le.solve)(p.data()).u))
+            le = LocalExplicit(p.topology, max_iter=60000)
+            tight = le.params(tol_primal=1e-16, tol_dual=1e-16)
+            best = definition_cost(p, np.asarray(jax.jit(le.solve)(p.data(), tight).u))
             assert definition_cost(p, np.asarray(ref.u)) > best * (1 + 1e-6)

@@ -1,0 +1,113 @@
+"""The package layout: one concept per module, no import circle, the CLI imported by
+no library module, no private name imported across modules."""
+
+import ast
+import pathlib
+
+import pytest
+
+pytestmark = pytest.mark.timeout(60)
+
+PKG = pathlib.Path(__file__).resolve().parents[1] / "ampc_jax"
+
+
+def _module(path: pathlib.Path) -> str:
+    rel = path.relative_to(PKG.parent).with_suffix("")
+    parts = list(rel.parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def _imports(path: pathlib.Path) -> list[tuple[str, list[str], bool]]:
+    """(module imported, names, at module level) for every import of the package's own modules."""
+    mod = _module(path)
+    is_pkg = path.name == "__init__.py"
+    tree = ast.parse(path.read_text())
+    top = {id(n) for n in tree.body}
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = mod.split(".")
+                base = base if is_pkg else base[:-1]
+                base = base[: len(base) - (node.level - 1)]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            if target.startswith("ampc_jax"):
+                out.append((target, [a.name for a in node.names], id(node) in top))
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.startswith("ampc_jax"):
+                    out.append((a.name, [], id(node) in top))
+    return out
+
+
+FILES = sorted(PKG.rglob("*.py"))
+MODULES = {_module(p): p for p in FILES}
+
+
+def _resolve(target: str) -> str:
+    while target and target not in MODULES:
+        target = target.rpartition(".")[0]
+    return target
+
+
+def test_no_import_circle_among_module_level_imports():
+    graph = {m: set() for m in MODULES}
+    for m, p in MODULES.items():
+        for target, names, top in _imports(p):
+            if not top:
+                continue
+            t = _resolve(target)
+            # "from pkg import name" where name is a submodule imports that submodule
+            for n in names:
+                if f"{t}.{n}" in MODULES:
+                    graph[m].add(f"{t}.{n}")
+            if t and t != m:
+                graph[m].add(t)
+    # a package's __init__ re-exporting its own submodules is not a circle
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(m: str) -> None:
+        state[m] = 1
+        stack.append(m)
+        for t in graph[m]:
+            if m.startswith(t + ".") and MODULES[t].name == "__init__.py":
+                continue  # a module importing its own package's __init__ (ancestor)
+            if state.get(t) == 1:
+                cycle = stack[stack.index(t) :] + [t]
+                if not all(MODULES[x].name == "__init__.py" or x == t for x in cycle[:-1]):
+                    raise AssertionError(f"import circle: {' -> '.join(cycle)}")
+            elif t not in state:
+                visit(t)
+        stack.pop()
+        state[m] = 2
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m)
+
+
+def test_library_never_imports_the_cli():
+    for m, p in MODULES.items():
+        if m.startswith("ampc_jax.cli"):
+            continue
+        for target, _, _ in _imports(p):
+            assert not _resolve(target).startswith("ampc_jax.cli"), f"{m} imports {target}"
+
+
+def test_no_private_name_imported_across_modules():
+    """A name starting with an underscore stays in its module (tests may reach in)."""
+    for m, p in MODULES.items():
+        for target, names, _ in _imports(p):
+            private = [n for n in names if n.startswith("_") and not n.startswith("__")]
+            assert not private, f"{m} imports {private} from {target}"
+
+
+def test_one_concept_per_module_stays_small():
+    """No module of more than about 700 lines (the flat modules were up to 1,400)."""
+    big = {m: n for m, p in MODULES.items() if (n := len(p.read_text().splitlines())) > 700}
+    assert not big, big
