@@ -27,11 +27,15 @@ def data_id(name: str) -> int:
     return int(db().get_message_by_name(name).dbc.attributes["E2EDataID"].value)
 
 
-def protect(name: str, values: dict[str, float], counter: int) -> bytes:
+def protect(
+    name: str, values: dict[str, float], counter: int, *, strict: bool | None = None
+) -> bytes:
     """cantools encode + autosar-e2e CRC: the peer's own framing."""
     msg = db().get_message_by_name(name)
-    # strict=False only to let a test build the invalid counter 15.
-    data = bytearray(msg.encode({"CRC": 0, "Counter": counter, **values}, strict=counter <= 14))
+    # strict=False only to let a test build the invalid counter 15 or a value
+    # outside the DBC's range (an implausible sensor).
+    strict = counter <= 14 if strict is None else strict
+    data = bytearray(msg.encode({"CRC": 0, "Counter": counter, **values}, strict=strict))
     e2e.p01.e2e_p01_protect(data, data_id(name), increment_counter=False)
     return bytes(data)
 
@@ -39,9 +43,11 @@ def protect(name: str, values: dict[str, float], counter: int) -> bytes:
 class CmdChecker:
     """Checks WheelTorqueCmd frames one by one: ID, DLC, CRC (autosar-e2e),
     counter continuity, and that cantools re-encodes the decoded values to the
-    same bytes."""
+    same bytes. ``continuous=False`` accepts counter gaps (frames dropped for
+    their age advance the counter: the receiver sees them as lost)."""
 
-    def __init__(self) -> None:
+    def __init__(self, *, continuous: bool = True) -> None:
+        self.continuous = continuous
         self.msg = db().get_message_by_name("WheelTorqueCmd")
         self.did = data_id("WheelTorqueCmd")
         self.prev: int | None = None
@@ -55,7 +61,7 @@ class CmdChecker:
         assert e2e.p01.e2e_p01_check(buf, self.did), f"bad CRC in {data.hex()}"
         counter = data[1] & 0x0F
         assert counter <= 14
-        if self.prev is not None:
+        if self.prev is not None and self.continuous:
             assert counter == (self.prev + 1) % 15, f"counter {self.prev} -> {counter}"
         self.prev = counter
         values = self.msg.decode(bytes(data), decode_choices=False)
@@ -115,9 +121,14 @@ def slcan_peer(bridge: can_bridge.Bridge) -> Iterator[can.BusABC]:
 
 
 def state_message(
-    name: str, values: dict[str, float], counter: int, *, corrupt: bool = False
+    name: str,
+    values: dict[str, float],
+    counter: int,
+    *,
+    corrupt: bool = False,
+    strict: bool | None = None,
 ) -> can.Message:
-    data = bytearray(protect(name, values, counter))
+    data = bytearray(protect(name, values, counter, strict=strict))
     if corrupt:
         data[2] ^= 0x01
     return can.Message(

@@ -41,7 +41,7 @@ def _slcan_bus(path: str) -> can.BusABC:
 
 
 def _parse_lines(lines: list[bytes]) -> list[dict]:
-    chk = CmdChecker()
+    chk = CmdChecker(continuous=False)
     out = []
     for line in lines:
         ident = int(line[1:4], 16)
@@ -238,12 +238,13 @@ def test_f2_mostly_bad_crc_is_invalid() -> None:
 
 
 def test_f2_one_out_of_sequence_frame_does_not_take_over_the_counter() -> None:
-    """Counters 0..4, then an intruder's 11 and 12 (LongSpeed 112): neither is
-    believed; the real sensor's frames are valid again within three frames."""
+    """Counters 0..4, then an intruder's 11 and 12 (LongSpeed 88, plausible):
+    neither is believed; the real sensor's frames are valid again within
+    three frames."""
     bridge = can_bridge.Bridge("slcan-pty:", period_ms=PERIOD_MS)
     bridge.start()
     bus = _slcan_bus(bridge.pty_path)
-    intruder = {**MOTION, "LongSpeed": 112.0}
+    intruder = {**MOTION, "LongSpeed": 88.0}
     try:
         _send_good(bus, range(5))
         time.sleep(0.05)
@@ -253,7 +254,7 @@ def test_f2_one_out_of_sequence_frame_does_not_take_over_the_counter() -> None:
             bus.send(state_message("VehicleMotion", intruder, c))
             time.sleep(0.03)
             seen.append(bridge.latest_state()["long_speed_mps"])
-        assert 112.0 not in [round(s or 0, 2) for s in seen], seen
+        assert 88.0 not in [round(s or 0, 2) for s in seen], seen
         assert bridge.latest_state()["valid"] is False
         _send_good(bus, range(5, 9))
         time.sleep(0.05)
@@ -272,7 +273,7 @@ def test_f2_implausible_values_are_rejected() -> None:
         _send_good(bus, range(5))
         msg = db().get_message_by_name("VehicleMotion")
         lim = msg.get_signal_by_name("LongSpeed").maximum
-        bad = state_message("VehicleMotion", {**MOTION, "LongSpeed": min(lim + 50, 300)}, 5)
+        bad = state_message("VehicleMotion", {**MOTION, "LongSpeed": lim + 50}, 5, strict=False)
         bus.send(bad)
         time.sleep(0.05)
         assert bridge.latest_state()["long_speed_mps"] == pytest.approx(12.34)
@@ -519,7 +520,7 @@ def test_f7_the_safe_state_releases_brakes_at_a_stated_rate() -> None:
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"hold_after_ms": 2.6 * 3600e3, "safe_after_ms": 3 * 3600e3, "fault_after_ms": 4 * 3600e3}, "hold_after_ms"),
+        ({"hold_after_ms": 2.6 * 3600e3}, "hold_after_ms"),
         ({"fault_after_ms": 3600e3}, "fault_after_ms"),
         ({"state_timeout_ms": 3600e3}, "state_timeout_ms"),
         ({"stop_safe_frames": 0}, "stop_safe_frames"),
