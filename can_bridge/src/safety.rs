@@ -282,8 +282,11 @@ pub struct Safety {
     output_steps: [i64; 4],
     mode: Mode,
     latched: bool,
-    /// Commands received before this time are ignored (start or last reset).
+    /// Start or last reset: the watchdog's origin while there is no command.
     epoch_ns: u64,
+    /// Commands received before this are ignored (the last reset; 0 at start,
+    /// as each run starts with no command at all).
+    ignore_before_ns: u64,
     rate_limited: u64,
 }
 
@@ -312,6 +315,7 @@ impl Safety {
             mode: Mode::Safe,
             latched: false,
             epoch_ns: now_ns,
+            ignore_before_ns: 0,
             rate_limited: 0,
         }
     }
@@ -366,6 +370,7 @@ impl Safety {
         }
         self.latched = false;
         self.epoch_ns = now_ns;
+        self.ignore_before_ns = now_ns;
         if self.mode == Mode::Fault {
             self.mode = Mode::Safe;
         }
@@ -399,7 +404,7 @@ impl Safety {
 
     /// One tick at deadline `now_ns` with the latest command, if any.
     pub fn step(&mut self, now_ns: u64, cmd: Option<&Command>) -> (Mode, [f64; 4]) {
-        let fresh = cmd.filter(|c| c.received_ns >= self.epoch_ns);
+        let fresh = cmd.filter(|c| c.received_ns >= self.ignore_before_ns);
         let since = fresh.map_or(self.epoch_ns, |c| c.received_ns);
         let age = now_ns.saturating_sub(since);
         if !self.latched && age >= self.cfg.fault_after_ns {
