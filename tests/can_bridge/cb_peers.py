@@ -43,11 +43,14 @@ def protect(
 class CmdChecker:
     """Checks WheelTorqueCmd frames one by one: ID, DLC, CRC (autosar-e2e),
     counter continuity, and that cantools re-encodes the decoded values to the
-    same bytes. ``continuous=False`` accepts counter gaps (frames dropped for
-    their age advance the counter: the receiver sees them as lost)."""
+    same bytes. With ``continuous=True`` the counter must step by one; by
+    default it may skip values (a frame dropped for its age advances the
+    counter, so the receiver sees it as lost; 15 dropped frames look like a
+    repeat): the skips are counted in ``gaps``."""
 
-    def __init__(self, *, continuous: bool = True) -> None:
+    def __init__(self, *, continuous: bool = False) -> None:
         self.continuous = continuous
+        self.gaps = 0
         self.msg = db().get_message_by_name("WheelTorqueCmd")
         self.did = data_id("WheelTorqueCmd")
         self.prev: int | None = None
@@ -61,8 +64,10 @@ class CmdChecker:
         assert e2e.p01.e2e_p01_check(buf, self.did), f"bad CRC in {data.hex()}"
         counter = data[1] & 0x0F
         assert counter <= 14
-        if self.prev is not None and self.continuous:
-            assert counter == (self.prev + 1) % 15, f"counter {self.prev} -> {counter}"
+        if self.prev is not None:
+            step = (counter - self.prev) % 15
+            assert step == 1 or not self.continuous, f"counter {self.prev} -> {counter}"
+            self.gaps += step != 1
         self.prev = counter
         values = self.msg.decode(bytes(data), decode_choices=False)
         again = bytearray(self.msg.encode(values))

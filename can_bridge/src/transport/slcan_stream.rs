@@ -143,9 +143,14 @@ struct Acks {
     replied: AtomicBool,
     /// A frame has been written since the handshake.
     wrote: AtomicBool,
-    /// A `V` probe is out while waiting for an acknowledgement.
-    probing: AtomicBool,
+    /// Ticks held since the last frame waiting for an acknowledgement; a `V`
+    /// probe goes out on the first and every [`REPROBE_TICKS`]th (a lost
+    /// answer must not hold frames forever).
+    held: std::sync::atomic::AtomicU32,
 }
+
+/// See [`Acks::held`].
+const REPROBE_TICKS: u32 = 5;
 
 #[derive(Clone)]
 enum Role {
@@ -223,7 +228,7 @@ impl Sink for SlcanSink {
                 if acks.known.load(Ordering::Acquire) && !acks.replied.load(Ordering::Acquire) {
                     // The adapter has not taken the last frame: do not queue
                     // another behind it; ask it for a sign of life instead.
-                    if !acks.probing.swap(true, Ordering::AcqRel) {
+                    if acks.held.fetch_add(1, Ordering::AcqRel) % REPROBE_TICKS == 0 {
                         let _ = self.port.write_once(b"V\r");
                     }
                     return Ok(Outcome {
@@ -232,7 +237,7 @@ impl Sink for SlcanSink {
                     });
                 }
                 acks.replied.store(false, Ordering::Release);
-                acks.probing.store(false, Ordering::Release);
+                acks.held.store(0, Ordering::Release);
                 let written = if self.write_frame(line.as_bytes())? {
                     acks.wrote.store(true, Ordering::Release);
                     Written::Yes

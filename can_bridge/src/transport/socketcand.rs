@@ -20,7 +20,7 @@ use crate::socketcand::{encode_send, Decoder, Event};
 use std::collections::VecDeque;
 use std::io::{self, Read, Write};
 use std::net::{TcpStream, ToSocketAddrs};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -189,6 +189,9 @@ struct Link {
     echo_known: AtomicBool,
     /// An echo is out and not yet answered.
     echo_pending: AtomicBool,
+    /// Connections made so far (a new one discards a message left half
+    /// sent on the old one).
+    generation: AtomicU64,
     health: Arc<Health>,
     what: String,
 }
@@ -202,9 +205,15 @@ impl Link {
     }
 }
 
+/// Ticks a frame may be withheld for a missing echo before a bare
+/// `< echo >` is sent again (a lost answer must not hold frames forever).
+const REPROBE_TICKS: u32 = 5;
+
 struct TcpSink {
     link: Arc<Link>,
     writer: MessageWriter,
+    generation: u64,
+    held: u32,
 }
 
 impl Sink for TcpSink {
@@ -223,6 +232,12 @@ impl Sink for TcpSink {
         let Some(stream) = guard.as_mut() else {
             return Ok(Outcome::DROPPED);
         };
+        let generation = link.generation.load(Ordering::Acquire);
+        if generation != self.generation {
+            self.generation = generation;
+            self.writer = MessageWriter::default();
+            self.held = 0;
+        }
         if self.writer.pending() > 0 {
             match self.writer.flush(stream, 0) {
                 Ok(true) => {}
@@ -238,8 +253,13 @@ impl Sink for TcpSink {
         let waiting_echo =
             link.echo_known.load(Ordering::Acquire) && link.echo_pending.load(Ordering::Acquire);
         if waiting_echo || out_queue(stream.as_raw_fd()).is_some_and(|n| n > MAX_UNACKED) {
+            self.held += 1;
+            if waiting_echo && self.held % REPROBE_TICKS == 0 {
+                let _ = self.writer.send(stream, b"< echo >", 0);
+            }
             return Ok(Outcome::DROPPED);
         }
+        self.held = 0;
         let mut msg = encode_send(frame);
         msg.push_str("< echo >");
         match self.writer.send(stream, msg.as_bytes(), 0) {
@@ -315,6 +335,7 @@ impl TcpSource {
                 self.link.echo_known.store(false, Ordering::Release);
                 self.link.echo_pending.store(false, Ordering::Release);
                 *self.link.tx.lock().unwrap_or_else(|e| e.into_inner()) = Some(stream);
+                self.link.generation.fetch_add(1, Ordering::AcqRel);
                 self.stream = Some(rx);
                 self.dec = dec;
                 for ev in backlog {
@@ -507,6 +528,7 @@ pub fn open(host: &str, port: u16, bus: &str) -> Result<Opened> {
         tx: Mutex::new(Some(stream)),
         echo_known: AtomicBool::new(false),
         echo_pending: AtomicBool::new(false),
+        generation: AtomicU64::new(0),
         health: health.clone(),
         what,
     });
@@ -518,6 +540,8 @@ pub fn open(host: &str, port: u16, bus: &str) -> Result<Opened> {
         sink: Box::new(TcpSink {
             link: link.clone(),
             writer: MessageWriter::default(),
+            generation: 0,
+            held: 0,
         }),
         source: Box::new(TcpSource {
             link,
@@ -685,12 +709,15 @@ mod tests {
             tx: Mutex::new(Some(client)),
             echo_known: AtomicBool::new(false),
             echo_pending: AtomicBool::new(false),
+            generation: AtomicU64::new(0),
             health: Arc::new(Health::default()),
             what: "test".into(),
         });
         let mut sink = TcpSink {
             link,
             writer: MessageWriter::default(),
+            generation: 0,
+            held: 0,
         };
         // The server does not read: the buffers fill, sends start failing.
         let (mut ok, mut failed) = (0usize, 0usize);
