@@ -11,7 +11,8 @@ every frame:
 * ``jax-compile-rt``: the same, with the transmit thread under SCHED_FIFO
   (``rt_priority=50``; skipped with a message where that is not permitted).
 
-A Python thread hands over a command every 10 ms in every condition.
+A Python thread hands over a command every 10 ms in every condition (within
+the default limits of ``vehicle.toml``: front wheels brake only).
 
 Figures over the first N ticks (default 1,200 = one minute at 50 ms):
 mean period, drift = (wake[N-1] - wake[0]) - (N-1) * period, lateness
@@ -124,7 +125,7 @@ def run(condition: str, ticks: int, period_ms: float) -> dict | None:
         seq = 0
         while not done.is_set():
             seq += 1
-            bridge.set_command((20.0, 20.0, 25.0, 25.0), seq)
+            bridge.set_command((-20.0, -20.0, 26.0, 26.0), seq)
             time.sleep(0.01)
 
     th = threading.Thread(target=commander, daemon=True)
@@ -162,6 +163,9 @@ def run(condition: str, ticks: int, period_ms: float) -> dict | None:
         "skipped_ticks": stats["skipped_ticks"],
         "skipped_in_window": idx[-1] - idx[0] - (len(idx) - 1),
         "tx_errors": stats["tx_errors"],
+        "tx_stale_dropped": stats["tx_stale_dropped"],
+        "send_max_ms": stats["send_max_ms"],
+        "transport_state_at_end": stats["transport_state"],
         "safety_state_at_end": stats["safety_state"],
         "peer": peer_out,
     }
@@ -190,7 +194,8 @@ def main() -> None:
     for r in results:
         print(
             f"  {r['condition']}: {r['note']}; lateness mean {r['lateness_mean_ms']:.3f} ms; "
-            f"tx errors {r['tx_errors']}; safety state at end {r['safety_state_at_end']}"
+            f"tx errors {r['tx_errors']}; frames dropped for age {r['tx_stale_dropped']}; "
+            f"longest send {r['send_max_ms']:.3f} ms; safety state at end {r['safety_state_at_end']}"
         )
     if args.json:
         with open(args.json, "w") as fh:

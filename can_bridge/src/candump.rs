@@ -85,38 +85,59 @@ impl LogWriter {
     }
 }
 
-/// Open `path` (truncating) and start the writer thread. Lines lost to
-/// write errors (a full disk, `/dev/full`, a FIFO whose reader stalls) are
-/// counted in `errors`.
+/// Open `path` and start the writer thread. Lines lost to write errors (a
+/// full disk, `/dev/full`, a FIFO whose reader stalls) are counted in
+/// `errors`.
 ///
+/// An existing file is refused unless `overwrite` (then truncated), and a
+/// symbolic link is always refused (`O_NOFOLLOW`), so a log never clobbers
+/// a file by accident or through a link
+/// (`test_f8_log_path_is_not_overwritten_nor_followed_through_a_symlink`).
 /// The file is opened with `O_NONBLOCK`: a FIFO without a reader is refused
 /// at once (instead of blocking `start` forever), and a FIFO whose reader
 /// stops reading costs lost (counted) lines, never a blocked `stop`.
 pub fn start(
     path: &std::path::Path,
+    overwrite: bool,
     channel: String,
     dropped: Arc<AtomicU64>,
     errors: Arc<AtomicU64>,
 ) -> Result<(LogSender, LogWriter)> {
-    use std::os::unix::fs::OpenOptionsExt;
-    let file = std::fs::OpenOptions::new()
-        .write(true)
-        .create(true)
-        .truncate(true)
-        .custom_flags(libc::O_NONBLOCK | libc::O_CLOEXEC)
-        .open(path)
-        .map_err(|e| {
-            use std::os::unix::fs::FileTypeExt;
-            let fifo = std::fs::metadata(path).is_ok_and(|m| m.file_type().is_fifo());
-            if fifo && e.raw_os_error() == Some(libc::ENXIO) {
-                Error::Config(format!(
-                    "log_path {} is a FIFO with no reader; open it for reading first or use a regular file",
-                    path.display()
-                ))
-            } else {
-                Error::io(&format!("cannot create log file {}", path.display()), &e)
-            }
-        })?;
+    use std::os::unix::fs::{FileTypeExt, OpenOptionsExt};
+    let shown = crate::error::clip(&path.display().to_string());
+    let meta = std::fs::symlink_metadata(path).ok();
+    if meta.as_ref().is_some_and(|m| m.file_type().is_symlink()) {
+        return Err(Error::Config(format!(
+            "log_path {shown} is a symbolic link; give the real path"
+        )));
+    }
+    if meta.is_some() && !overwrite {
+        return Err(Error::Config(format!(
+            "log_path {shown} exists; pass log_overwrite=True to replace it"
+        )));
+    }
+    let mut opts = std::fs::OpenOptions::new();
+    opts.write(true)
+        .custom_flags(libc::O_NONBLOCK | libc::O_CLOEXEC | libc::O_NOFOLLOW);
+    if meta.is_some() {
+        opts.truncate(true);
+    } else {
+        opts.create_new(true);
+    }
+    let file = opts.open(path).map_err(|e| {
+        let fifo = std::fs::metadata(path).is_ok_and(|m| m.file_type().is_fifo());
+        if fifo && e.raw_os_error() == Some(libc::ENXIO) {
+            Error::Config(format!(
+                "log_path {shown} is a FIFO with no reader; open it for reading first or use a regular file"
+            ))
+        } else if e.raw_os_error() == Some(libc::ELOOP) {
+            Error::Config(format!(
+                "log_path {shown} is a symbolic link; give the real path"
+            ))
+        } else {
+            Error::io(&format!("cannot create log file {shown}"), &e)
+        }
+    })?;
     let (tx, rx) = sync_channel::<Entry>(8192);
     let out = Out {
         file,
@@ -240,7 +261,8 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("can_bridge_log_{}", std::process::id()));
         let dropped = Arc::new(AtomicU64::new(0));
         let errors = Arc::new(AtomicU64::new(0));
-        let (tx, w) = start(&dir, "can0".into(), dropped.clone(), errors.clone()).unwrap();
+        let _ = std::fs::remove_file(&dir);
+        let (tx, w) = start(&dir, false, "can0".into(), dropped.clone(), errors.clone()).unwrap();
         let f = CanFrame::new(0x101, false, &[1]).unwrap();
         for _ in 0..3 {
             tx.log(1_000_000_000, &f, Dir::Tx);
@@ -259,6 +281,7 @@ mod tests {
         let errors = Arc::new(AtomicU64::new(0));
         let (tx, w) = start(
             std::path::Path::new("/dev/full"),
+            true,
             "can0".into(),
             Arc::new(AtomicU64::new(0)),
             errors.clone(),
@@ -285,6 +308,7 @@ mod tests {
         std::thread::spawn(move || {
             let r = start(
                 &p,
+                true,
                 "can0".into(),
                 Arc::new(AtomicU64::new(0)),
                 Arc::new(AtomicU64::new(0)),

@@ -1,6 +1,6 @@
 //! The channel string that selects a transport.
 
-use crate::error::{Error, Result};
+use crate::error::{clip, Error, Result};
 
 /// Default serial speed for `slcan:PATH` without `@BAUD`.
 pub const DEFAULT_BAUD: u32 = 115_200;
@@ -39,7 +39,7 @@ const HELP: &str =
 impl ChannelSpec {
     /// Parse a channel string.
     pub fn parse(s: &str) -> Result<Self> {
-        let bad = |why: &str| Error::Config(format!("channel {s:?}: {why} ({HELP})"));
+        let bad = |why: &str| Error::Config(format!("channel {}: {why} ({HELP})", clip(s)));
         let (kind, rest) = s.split_once(':').unwrap_or((s, ""));
         match kind {
             "socketcan" => {

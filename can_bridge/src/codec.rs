@@ -120,10 +120,11 @@ impl Signal {
         self.to_phys(self.get_raw(data))
     }
 
-    /// Whether every raw value maps to an integer physical value (integer
-    /// factor and offset, e.g. the enum-like `Mode`).
+    /// Whether the signal counts in ones (factor 1, integer offset): an
+    /// enum-like signal such as `Mode`, where rounding 2.6 would change its
+    /// meaning. (The torques' factor 2 is a resolution: they are rounded.)
     pub fn is_integer_valued(&self) -> bool {
-        self.factor.fract() == 0.0 && self.offset.fract() == 0.0
+        self.factor == 1.0 && self.offset.fract() == 0.0
     }
 
     /// Refuse what the DBC does not allow for this signal: a non-finite
@@ -180,10 +181,10 @@ pub const WHEEL_TORQUE_CMD: Message = Message {
         CRC,
         COUNTER,
         sig("Mode", 12, 2, false, 1.0, 0.0, 3.0),
-        sig("TorqueFL", 16, 12, true, 0.5, -1000.0, 1000.0),
-        sig("TorqueFR", 28, 12, true, 0.5, -1000.0, 1000.0),
-        sig("TorqueRL", 40, 12, true, 0.5, -1000.0, 1000.0),
-        sig("TorqueRR", 52, 12, true, 0.5, -1000.0, 1000.0),
+        sig("TorqueFL", 16, 12, true, 2.0, -4096.0, 4094.0),
+        sig("TorqueFR", 28, 12, true, 2.0, -4096.0, 4094.0),
+        sig("TorqueRL", 40, 12, true, 2.0, -4096.0, 4094.0),
+        sig("TorqueRR", 52, 12, true, 2.0, -4096.0, 4094.0),
     ],
 };
 
@@ -196,9 +197,9 @@ pub const VEHICLE_MOTION: Message = Message {
     signals: &[
         CRC,
         COUNTER,
-        sig("LongSpeed", 16, 16, true, 0.01, -327.68, 327.67),
-        sig("LatSpeed", 32, 16, true, 0.01, -327.68, 327.67),
-        sig("YawRate", 48, 16, true, 0.001, -32.768, 32.767),
+        sig("LongSpeed", 16, 16, true, 0.01, -20.0, 90.0),
+        sig("LatSpeed", 32, 16, true, 0.01, -20.0, 20.0),
+        sig("YawRate", 48, 16, true, 0.001, -3.0, 3.0),
     ],
 };
 
@@ -211,10 +212,10 @@ pub const WHEEL_SPEEDS: Message = Message {
     signals: &[
         CRC,
         COUNTER,
-        sig("WheelSpeedFL", 16, 12, true, 0.1, -204.8, 204.7),
-        sig("WheelSpeedFR", 28, 12, true, 0.1, -204.8, 204.7),
-        sig("WheelSpeedRL", 40, 12, true, 0.1, -204.8, 204.7),
-        sig("WheelSpeedRR", 52, 12, true, 0.1, -204.8, 204.7),
+        sig("WheelSpeedFL", 16, 12, true, 0.1, -60.0, 204.7),
+        sig("WheelSpeedFR", 28, 12, true, 0.1, -60.0, 204.7),
+        sig("WheelSpeedRL", 40, 12, true, 0.1, -60.0, 204.7),
+        sig("WheelSpeedRR", 52, 12, true, 0.1, -60.0, 204.7),
     ],
 };
 
@@ -227,7 +228,7 @@ pub const STEERING_STATE: Message = Message {
     signals: &[
         CRC,
         COUNTER,
-        sig("SteeringAngle", 16, 16, true, 0.0001, -3.2768, 3.2767),
+        sig("SteeringAngle", 16, 16, true, 0.0001, -1.0, 1.0),
     ],
 };
 
@@ -319,10 +320,21 @@ impl Message {
             *o = s.get(data);
         }
     }
+
+    /// The first decoded value outside its signal's DBC `[min|max]` (the
+    /// plausibility bounds of a received message), as (signal, value).
+    pub fn implausible(&self, values: &[f64]) -> Option<(&'static str, f64)> {
+        let payload_signals = self.signals.get(2..).unwrap_or(&[]);
+        payload_signals
+            .iter()
+            .zip(values)
+            .find(|(s, &v)| !(s.min..=s.max).contains(&v))
+            .map(|(s, &v)| (s.name, v))
+    }
 }
 
-/// Frame `WheelTorqueCmd`. `torques_nm` must already be clamped to the
-/// actuator limits; they are rounded to the 0.5 Nm resolution.
+/// Frame `WheelTorqueCmd`. `torques_nm` must already be limited to the
+/// actuators (the limiter works on the signals' 2 Nm grid, so nothing is rounded here).
 pub fn encode_torque_cmd(torques_nm: &[f64; 4], mode: Mode, counter: u8) -> Result<CanFrame> {
     let v = [
         f64::from(mode as u8),
@@ -398,23 +410,23 @@ mod tests {
     /// values, with CRC/Counter then filled in by `autosar-e2e`.
     #[test]
     fn packing_matches_cantools_example() {
-        // cantools: WheelTorqueCmd {CRC:0, Counter:3, Mode:hold, FL:-12.5,
-        // FR:100, RL:0, RR:1000} -> 00 13 e7 8f 0c 00 00 7d (CRC not yet set).
+        // cantools 45.1: WheelTorqueCmd {CRC:0, Counter:3, Mode:hold, FL:-12,
+        // FR:100, RL:0, RR:4000} -> 00 13 fa 2f 03 00 00 7d (CRC not yet set).
         let mut data = [0u8; 8];
         let m = &WHEEL_TORQUE_CMD;
         for (name, v) in [
             ("Counter", 3.0),
             ("Mode", 1.0),
-            ("TorqueFL", -12.5),
+            ("TorqueFL", -12.0),
             ("TorqueFR", 100.0),
             ("TorqueRL", 0.0),
-            ("TorqueRR", 1000.0),
+            ("TorqueRR", 4000.0),
         ] {
             let s = m.signal(name).unwrap();
             s.put_raw(&mut data, s.to_raw(v).unwrap());
         }
-        assert_eq!(data, [0x00, 0x13, 0xe7, 0x8f, 0x0c, 0x00, 0x00, 0x7d]);
-        let f = encode_torque_cmd(&[-12.5, 100.0, 0.0, 1000.0], Mode::Hold, 3).unwrap();
+        assert_eq!(data, [0x00, 0x13, 0xfa, 0x2f, 0x03, 0x00, 0x00, 0x7d]);
+        let f = encode_torque_cmd(&[-12.0, 100.0, 0.0, 4000.0], Mode::Hold, 3).unwrap();
         assert_eq!(&f.data()[1..], &data[1..]);
         assert!(e2e::crc_ok(f.data(), m.data_id));
     }
@@ -422,15 +434,16 @@ mod tests {
     #[test]
     fn round_half_even_like_python() {
         let s = WHEEL_TORQUE_CMD.signal("TorqueFL").unwrap();
-        // 0.25 / 0.5 = 0.5 -> 0 ; 0.75 / 0.5 = 1.5 -> 2 ; -0.25 -> -0.0 -> 0
-        assert_eq!(s.to_raw(0.25).unwrap(), 0);
-        assert_eq!(s.to_raw(0.75).unwrap(), 2);
-        assert_eq!(s.to_raw(-0.25).unwrap(), 0);
-        assert_eq!(s.to_raw(-0.75).unwrap(), -2);
+        // 1 / 2 = 0.5 -> 0 ; 3 / 2 = 1.5 -> 2 ; -1 -> -0.5 -> 0
+        assert_eq!(s.to_raw(1.0).unwrap(), 0);
+        assert_eq!(s.to_raw(3.0).unwrap(), 2);
+        assert_eq!(s.to_raw(-1.0).unwrap(), 0);
+        assert_eq!(s.to_raw(-3.0).unwrap(), -2);
         assert!(s.to_raw(f64::NAN).is_err());
         assert!(s.to_raw(f64::INFINITY).is_err());
-        assert!(s.to_raw(1024.0).is_err());
-        assert_eq!(s.to_raw(1023.5).unwrap(), 2047);
+        assert!(s.to_raw(4095.0).is_err());
+        assert_eq!(s.to_raw(4094.0).unwrap(), 2047);
+        assert_eq!(s.to_raw(-4096.0).unwrap(), -2048);
     }
 
     #[test]
@@ -459,17 +472,17 @@ mod tests {
             assert!(e.message().contains(&format!("counter = {counter}")), "{e}");
         }
         let e = WHEEL_TORQUE_CMD
-            .encode_checked(&[0.0, 1020.0, 1.0, 1.0, 1.0], 0)
+            .encode_checked(&[0.0, 4095.0, 1.0, 1.0, 1.0], 0)
             .unwrap_err();
-        assert!(e.message().contains("TorqueFL = 1020"), "{e}");
-        assert!(e.message().contains("-1000..=1000"), "{e}");
+        assert!(e.message().contains("TorqueFL = 4095"), "{e}");
+        assert!(e.message().contains("-4096..=4094"), "{e}");
         let e = WHEEL_TORQUE_CMD
             .encode_checked(&[2.6, 1.0, 1.0, 1.0, 1.0], 0)
             .unwrap_err();
         assert!(e.message().contains("Mode = 2.6 is not an integer"), "{e}");
         // Limits themselves and off-grid torques (rounded) are fine.
         WHEEL_TORQUE_CMD
-            .encode_checked(&[3.0, -1000.0, 1000.0, 0.3, 0.25], 0)
+            .encode_checked(&[3.0, -4096.0, 4094.0, 0.3, 0.25], 0)
             .unwrap();
         let e = STEERING_STATE.encode_checked(&[f64::NAN], 0).unwrap_err();
         assert!(e.message().contains("not a finite number"), "{e}");

@@ -74,66 +74,119 @@ pub fn next_counter(c: u8) -> u8 {
     }
 }
 
-/// Verdict of the receive-side check of one frame.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// Status of one received frame, after AUTOSAR E2E Profile 1's
+/// `E2E_P01Check` (OK, OKSOMELOST, INITIAL, SYNC, REPEATED, WRONGSEQUENCE,
+/// WRONGCRC), plus the checks Profile 1 leaves to the receiver: length,
+/// counter 15, and a repeated counter with a different payload (two sources).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Check {
-    /// CRC right, counter advanced by one (or first frame after a (re)sync).
+    /// In sequence (counter + 1) and synchronised: the data may be used.
     Ok,
-    /// CRC right, counter advanced by 2..=max_delta: some frames were lost; accepted.
+    /// In sequence after 1..max_delta-1 lost frames: the data may be used,
+    /// but the loss is a strike against the message.
     OkSomeLost,
-    /// Frame shorter than the message length.
+    /// First frame (after start or a timeout): anchors the counter, data not used.
+    Initial,
+    /// In sequence, but the counter was (re)anchored less than `sync_frames`
+    /// frames ago (AUTOSAR SyncCounter): data not used yet.
+    Sync,
+    /// Same counter and payload as the last frame: a frozen or replayed sender.
+    Repeated,
+    /// Same counter, different payload: two senders on one identifier.
+    TwoSources,
+    /// Counter jumped by more than `max_delta`: data not used, the counter is
+    /// re-anchored and must be confirmed by `sync_frames` in-sequence frames.
+    WrongSequence,
+    /// Frame not as long as the message.
     BadLength,
     /// CRC mismatch.
     BadCrc,
-    /// Counter repeated (delta 0); the frame is rejected.
-    Repeated,
-    /// Counter jumped by more than max_delta; rejected, and the checker resynchronises.
-    WrongSequence,
-    /// Counter 15.
+    /// Counter 15 (not a Profile 1 counter).
     InvalidCounter,
+    /// E2E-valid, but a value lies outside its signal's DBC `[min|max]`
+    /// (set by the bridge after decoding; the data is not used).
+    Implausible,
 }
 
 impl Check {
     /// Whether the frame's content may be used.
-    pub fn accepted(self) -> bool {
+    pub fn usable(self) -> bool {
         matches!(self, Check::Ok | Check::OkSomeLost)
     }
-    /// Whether the verdict counts as a counter error.
-    pub fn is_counter_error(self) -> bool {
-        matches!(
-            self,
-            Check::Repeated | Check::WrongSequence | Check::InvalidCounter
-        )
+
+    /// Whether the frame counts as a strike against the message's validity
+    /// (INITIAL and SYNC do not: they are the normal way into OK).
+    pub fn is_strike(self) -> bool {
+        !matches!(self, Check::Ok | Check::Initial | Check::Sync)
+    }
+
+    /// Short name, as reported in `latest_state()["status"]`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Check::Ok => "ok",
+            Check::OkSomeLost => "lost frames",
+            Check::Initial => "initial",
+            Check::Sync => "sync",
+            Check::Repeated => "repeated",
+            Check::TwoSources => "two sources",
+            Check::WrongSequence => "wrong sequence",
+            Check::BadLength => "wrong length",
+            Check::BadCrc => "wrong crc",
+            Check::InvalidCounter => "counter 15",
+            Check::Implausible => "implausible",
+        }
     }
 }
 
-/// Receive-side state of one message: CRC and alive-counter continuity.
+/// Receive-side E2E Profile 1 state of one message: the last valid counter,
+/// the synchronisation still owed after an anchor, and the last payload (to
+/// tell a repeat from a second sender).
 #[derive(Clone, Debug)]
 pub struct Receiver {
     data_id: u16,
     length: usize,
     max_delta: u8,
+    sync_frames: u8,
     last: Option<u8>,
+    sync_left: u8,
+    last_payload: [u8; 8],
 }
 
 impl Receiver {
-    /// A checker for a message of `length` bytes. `max_delta` (>= 1) is the
-    /// largest counter step still accepted.
-    pub fn new(data_id: u16, length: usize, max_delta: u8) -> Self {
+    /// A checker for a message of `length` bytes. `max_delta` (1..=14,
+    /// AUTOSAR MaxDeltaCounterInit) is the largest counter step still in
+    /// sequence; `sync_frames` (1..=14, AUTOSAR SyncCounterInit) in-sequence
+    /// frames must follow an anchor before data is used.
+    pub fn new(data_id: u16, length: usize, max_delta: u8, sync_frames: u8) -> Self {
         Receiver {
             data_id,
             length,
             max_delta: max_delta.clamp(1, MAX_COUNTER),
+            sync_frames: sync_frames.clamp(1, MAX_COUNTER),
             last: None,
+            sync_left: 0,
+            last_payload: [0; 8],
         }
     }
 
-    /// Forget the last counter: the next frame with a valid CRC is accepted as is.
+    /// Forget the counter (after a timeout): the next valid frame is INITIAL.
     pub fn resync(&mut self) {
         self.last = None;
     }
 
-    /// Check one received payload and update the counter state.
+    fn anchor(&mut self, c: u8, payload: &[u8]) {
+        self.last = Some(c);
+        self.sync_left = self.sync_frames;
+        self.remember(payload);
+    }
+
+    fn remember(&mut self, payload: &[u8]) {
+        self.last_payload = [0; 8];
+        let n = payload.len().min(8);
+        self.last_payload[..n].copy_from_slice(&payload[..n]);
+    }
+
+    /// Check one received payload and update the state.
     pub fn check(&mut self, payload: &[u8]) -> Check {
         if payload.len() != self.length || payload.len() < 2 {
             return Check::BadLength;
@@ -146,22 +199,96 @@ impl Receiver {
             return Check::InvalidCounter;
         }
         let Some(last) = self.last else {
-            self.last = Some(c);
-            return Check::Ok;
+            self.anchor(c, payload);
+            return Check::Initial;
         };
         let delta = (c + MAX_COUNTER + 1 - last) % (MAX_COUNTER + 1);
         if delta == 0 {
-            Check::Repeated
-        } else if delta == 1 {
-            self.last = Some(c);
-            Check::Ok
-        } else if delta <= self.max_delta {
-            self.last = Some(c);
-            Check::OkSomeLost
-        } else {
-            self.last = Some(c);
-            Check::WrongSequence
+            let n = payload.len().min(8);
+            return if self.last_payload[..n] == payload[..n] {
+                Check::Repeated
+            } else {
+                Check::TwoSources
+            };
         }
+        if delta > self.max_delta {
+            self.anchor(c, payload);
+            return Check::WrongSequence;
+        }
+        self.last = Some(c);
+        self.remember(payload);
+        if self.sync_left > 1 {
+            self.sync_left -= 1;
+            return Check::Sync;
+        }
+        self.sync_left = 0;
+        if delta == 1 {
+            Check::Ok
+        } else {
+            Check::OkSomeLost
+        }
+    }
+}
+
+/// Validity of a message judged over its last [`WINDOW`] frames (in the
+/// spirit of panda's counter strikes): valid only while the last frame was
+/// usable and at most `max_strikes` of the window were strikes. A frozen,
+/// repeated, jumping or doubled sender is a strike on every frame, so it is
+/// invalid from its first bad frame on and stays invalid until `WINDOW`
+/// frames later at most `max_strikes` remain (`e2e::tests` and the property
+/// tests pin both).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Judge {
+    strikes: u32,
+    seen: u32,
+    last: Option<Check>,
+    max_strikes: u32,
+}
+
+/// Frames the [`Judge`] looks back over.
+pub const WINDOW: u32 = 16;
+
+impl Judge {
+    /// A judge allowing `max_strikes` (0..=WINDOW) strikes per window.
+    pub fn new(max_strikes: u32) -> Self {
+        Judge {
+            strikes: 0,
+            seen: 0,
+            last: None,
+            max_strikes: max_strikes.min(WINDOW),
+        }
+    }
+
+    /// Record one frame's status.
+    pub fn record(&mut self, c: Check) {
+        self.strikes = (self.strikes << 1) | u32::from(c.is_strike());
+        self.seen = (self.seen << 1) | 1;
+        self.last = Some(c);
+    }
+
+    /// Strikes among the last [`WINDOW`] frames.
+    pub fn strikes(&self) -> u32 {
+        (self.strikes & ((1u32 << WINDOW) - 1)).count_ones()
+    }
+
+    /// The last frame's status.
+    pub fn last(&self) -> Option<Check> {
+        self.last
+    }
+
+    /// `Ok(())` if the message is valid, else why not.
+    pub fn verdict(&self) -> std::result::Result<(), &'static str> {
+        match self.last {
+            None => Err("no data"),
+            Some(c) if !c.usable() => Err(c.name()),
+            Some(_) if self.strikes() > self.max_strikes => Err("too many strikes"),
+            Some(_) => Ok(()),
+        }
+    }
+
+    /// Forget the history (after a timeout).
+    pub fn reset(&mut self) {
+        *self = Judge::new(self.max_strikes);
     }
 }
 
@@ -217,33 +344,144 @@ mod tests {
         assert_eq!(counter_of(&p), Some(0));
     }
 
+    fn mk(id: u16, c: u8, v: u8) -> [u8; 8] {
+        let mut p = [0u8, 0, v, 2, 3, 4, 5, 6];
+        protect(&mut p, id, c);
+        p
+    }
+
     #[test]
-    fn receiver_sequence() {
+    fn receiver_follows_profile1() {
         let id = 0x0C11;
-        let mk = |c: u8| {
-            let mut p = [0u8, 0, 1, 2, 3, 4, 5, 6];
-            protect(&mut p, id, c);
-            p
-        };
-        let mut r = Receiver::new(id, 8, 2);
-        assert_eq!(r.check(&mk(5)), Check::Ok);
-        assert_eq!(r.check(&mk(5)), Check::Repeated);
-        assert_eq!(r.check(&mk(6)), Check::Ok);
-        assert_eq!(r.check(&mk(8)), Check::OkSomeLost);
-        assert_eq!(r.check(&mk(12)), Check::WrongSequence);
-        assert_eq!(r.check(&mk(13)), Check::Ok);
-        assert_eq!(r.check(&mk(14)), Check::Ok);
-        assert_eq!(r.check(&mk(0)), Check::Ok);
-        let mut bad = mk(1);
+        let mut r = Receiver::new(id, 8, 2, 2);
+        assert_eq!(r.check(&mk(id, 5, 0)), Check::Initial);
+        assert_eq!(r.check(&mk(id, 5, 0)), Check::Repeated);
+        assert_eq!(r.check(&mk(id, 5, 9)), Check::TwoSources);
+        assert_eq!(r.check(&mk(id, 6, 0)), Check::Sync);
+        assert_eq!(r.check(&mk(id, 7, 0)), Check::Ok);
+        assert_eq!(r.check(&mk(id, 9, 0)), Check::OkSomeLost);
+        assert_eq!(r.check(&mk(id, 13, 0)), Check::WrongSequence);
+        // re-anchored at 13: two in-sequence frames before data is used
+        assert_eq!(r.check(&mk(id, 14, 0)), Check::Sync);
+        assert_eq!(r.check(&mk(id, 0, 0)), Check::Ok);
+        let mut bad = mk(id, 1, 0);
         bad[3] ^= 0x10;
         assert_eq!(r.check(&bad), Check::BadCrc);
-        assert_eq!(r.check(&mk(1)), Check::Ok);
+        assert_eq!(r.check(&mk(id, 1, 0)), Check::Ok);
         let mut c15 = [0u8; 8];
         c15[1] = 0x0F;
         c15[0] = p01_crc(id, &c15);
         assert_eq!(r.check(&c15), Check::InvalidCounter);
-        assert_eq!(r.check(&mk(2)[..7]), Check::BadLength);
+        assert_eq!(r.check(&mk(id, 2, 0)[..7]), Check::BadLength);
         r.resync();
-        assert_eq!(r.check(&mk(9)), Check::Ok);
+        assert_eq!(r.check(&mk(id, 9, 0)), Check::Initial);
+    }
+
+    #[test]
+    fn an_intruders_frame_is_never_used_and_the_sensor_recovers() {
+        // Counters 0..4, an intruder's 11 and 12, then the sensor's 5, 6, 7.
+        let id = 0x0C11;
+        let mut r = Receiver::new(id, 8, 2, 2);
+        let mut j = Judge::new(2);
+        for c in 0..5 {
+            j.record(r.check(&mk(id, c, 1)));
+        }
+        assert!(j.verdict().is_ok());
+        for c in [11, 12] {
+            let s = r.check(&mk(id, c, 112));
+            assert!(!s.usable(), "{s:?}");
+            j.record(s);
+            assert!(j.verdict().is_err());
+        }
+        let got: Vec<Check> = (5..8).map(|c| r.check(&mk(id, c, 1))).collect();
+        for s in &got {
+            j.record(*s);
+        }
+        assert_eq!(got, [Check::WrongSequence, Check::Sync, Check::Ok]);
+        assert!(j.verdict().is_ok(), "{:?}", j.verdict());
+    }
+
+    #[test]
+    fn judge_window() {
+        let mut j = Judge::new(2);
+        assert_eq!(j.verdict(), Err("no data"));
+        j.record(Check::Ok);
+        assert!(j.verdict().is_ok());
+        j.record(Check::Repeated);
+        assert_eq!(j.verdict(), Err("repeated"));
+        j.record(Check::OkSomeLost);
+        j.record(Check::OkSomeLost);
+        assert_eq!(j.verdict(), Err("too many strikes"));
+        for _ in 0..WINDOW - 3 {
+            j.record(Check::Ok);
+        }
+        assert_eq!(j.strikes(), 3);
+        j.record(Check::Ok);
+        assert!(j.verdict().is_ok());
+    }
+
+    use proptest::prelude::*;
+
+    fn cases() -> u32 {
+        std::env::var("CAN_BRIDGE_PROPTEST_CASES")
+            .ok()
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(2000)
+    }
+
+    /// One scripted frame: counter step (0 = repeat), payload change, CRC fault.
+    fn arb_step() -> impl Strategy<Value = (u8, bool, bool)> {
+        (0u8..15, any::<bool>(), prop::bool::weighted(0.1))
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(cases()))]
+
+        /// Whatever arrives: data is used only from a frame with a right CRC
+        /// whose counter advanced by 1..=max_delta from the last used or
+        /// anchored one, at least `sync` in-sequence frames after the anchor;
+        /// a valid verdict needs a usable last frame and <= max_strikes strikes.
+        #[test]
+        fn receiver_uses_only_confirmed_in_sequence_frames(
+            steps in proptest::collection::vec(arb_step(), 1..200),
+            max_delta in 1u8..5, sync in 1u8..4, max_strikes in 0u32..4,
+        ) {
+            let id = 0x0C12;
+            let mut r = Receiver::new(id, 8, max_delta, sync);
+            let mut j = Judge::new(max_strikes);
+            let mut c = 0u8;
+            let mut v = 0u8;
+            let mut run = 0u32; // in-sequence frames since the last anchor
+            let mut prev: Option<u8> = None;
+            for (step, change, corrupt) in steps {
+                c = (c + step) % 15;
+                if change { v = v.wrapping_add(1); }
+                let mut p = mk(id, c, v);
+                if corrupt { p[4] ^= 0x40; }
+                let repeat = prev == Some(c) && !corrupt;
+                let s = r.check(&p);
+                j.record(s);
+                if s.usable() {
+                    prop_assert!(!corrupt);
+                    let d = (c + 15 - prev.unwrap()) % 15;
+                    prop_assert!((1..=max_delta).contains(&d));
+                    prop_assert!(run + 1 >= u32::from(sync));
+                }
+                match s {
+                    Check::Initial | Check::WrongSequence => { prev = Some(c); run = 0; }
+                    Check::Ok | Check::OkSomeLost | Check::Sync => { prev = Some(c); run += 1; }
+                    _ => {}
+                }
+                if j.verdict().is_ok() {
+                    prop_assert!(s.usable());
+                    prop_assert!(j.strikes() <= max_strikes);
+                }
+                // A repeated counter is never usable, and never valid.
+                if repeat {
+                    prop_assert!(matches!(s, Check::Repeated | Check::TwoSources));
+                    prop_assert!(j.verdict().is_err());
+                }
+            }
+        }
     }
 }

@@ -49,5 +49,21 @@ impl fmt::Display for Error {
 
 impl std::error::Error for Error {}
 
+/// Longest piece of caller input quoted in an error message, characters.
+pub const CLIP_CHARS: usize = 60;
+
+/// Quote `s` for an error message, cut to [`CLIP_CHARS`] characters with its
+/// full length noted, so a huge argument never becomes a huge exception
+/// (`test_f8_errors_do_not_echo_unbounded_input`).
+pub fn clip(s: &str) -> String {
+    let n = s.chars().count();
+    if n <= CLIP_CHARS {
+        format!("{s:?}")
+    } else {
+        let head: String = s.chars().take(CLIP_CHARS / 2).collect();
+        format!("{head:?}... ({n} characters)")
+    }
+}
+
 /// Crate-wide result alias.
 pub type Result<T> = std::result::Result<T, Error>;

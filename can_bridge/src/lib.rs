@@ -12,6 +12,7 @@ pub mod bridge;
 pub mod candump;
 pub mod channel;
 pub mod codec;
+pub mod config;
 pub mod e2e;
 pub mod error;
 pub mod frame;
@@ -24,6 +25,6 @@ pub mod transport;
 #[cfg(feature = "python")]
 mod python;
 
-pub use bridge::{Bridge, BridgeConfig, Stats, VehicleState};
+pub use bridge::{Bridge, BridgeConfig, OnTransportLoss, Stats, VehicleState};
 pub use error::{Error, Result};
 pub use frame::CanFrame;

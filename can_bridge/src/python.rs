@@ -2,10 +2,10 @@
 //! that blocks, and one mapping from [`Error`] kinds to the exception classes
 //! declared in `can_bridge/_errors.py`.
 
-use crate::bridge::{Bridge, BridgeConfig};
+use crate::bridge::{Bridge, BridgeConfig, OnTransportLoss, RX_NAMES};
 use crate::codec::{Mode, ALL_MESSAGES};
 use crate::error::Error;
-use crate::safety::SafetyConfig;
+use crate::safety::LimitRule;
 use pyo3::exceptions::{PyOverflowError, PyRuntimeError};
 use pyo3::prelude::*;
 use pyo3::sync::PyOnceLock;
@@ -150,7 +150,7 @@ fn four_floats(
         let v = real(&item).map_err(|why| match why {
             NotReal::Type => kind(format!(
                 "{what}[{n}] = {} is not a real number",
-                repr(&item)
+                short_repr(&item)
             )),
             NotReal::OutOfRange => kind(format!(
                 "{what}[{n}] = {} is out of range (too large for a float)",
@@ -178,20 +178,40 @@ fn four_floats(
     Ok(out)
 }
 
-/// A numeric constructor argument (`None`: the default).
-fn arg_f64(name: &str, obj: Option<&Bound<'_, PyAny>>, default: f64) -> Result<f64, Error> {
+/// A numeric constructor argument (`None`: not given).
+fn opt_f64(name: &str, obj: Option<&Bound<'_, PyAny>>) -> Result<Option<f64>, Error> {
     match obj {
-        None => Ok(default),
-        Some(o) if o.is_none() => Ok(default),
-        Some(o) => real(o).map_err(|why| match why {
-            NotReal::Type => {
-                Error::Config(format!("{name} must be a real number, got {}", repr(o)))
-            }
+        None => Ok(None),
+        Some(o) if o.is_none() => Ok(None),
+        Some(o) => real(o).map(Some).map_err(|why| match why {
+            NotReal::Type => Error::Config(format!(
+                "{name} must be a real number, got {}",
+                short_repr(o)
+            )),
             NotReal::OutOfRange => Error::Config(format!(
                 "{name} = {} is out of range (too large for a float)",
                 short_repr(o)
             )),
         }),
+    }
+}
+
+/// A per-wheel argument: one number for all four wheels, or four (FL, FR, RL, RR).
+fn per_wheel(name: &str, obj: Option<&Bound<'_, PyAny>>) -> Result<Option<[f64; 4]>, Error> {
+    let Some(o) = obj.filter(|o| !o.is_none()) else {
+        return Ok(None);
+    };
+    match real(o) {
+        Ok(v) => Ok(Some([v; 4])),
+        Err(NotReal::OutOfRange) => Err(Error::Config(format!(
+            "{name} = {} is out of range (too large for a float)",
+            short_repr(o)
+        ))),
+        Err(NotReal::Type) if is_bool(o) => Err(Error::Config(format!(
+            "{name} must be a real number or 4 of them, got {}",
+            short_repr(o)
+        ))),
+        Err(NotReal::Type) => four_floats(o, name, Error::Config).map(Some),
     }
 }
 
@@ -216,7 +236,7 @@ fn arg_int(
         Some(v) if (lo..=hi).contains(&v) => Ok(v),
         _ => Err(Error::Config(format!(
             "{name} must be an integer in {lo}..={hi}, got {}",
-            repr(o)
+            short_repr(o)
         ))),
     }
 }
@@ -234,16 +254,26 @@ impl PyBridge {
         channel,
         period_ms = None,
         *,
-        max_torque_nm = None,
-        max_rate_nm_per_tick = None,
+        config = None,
+        torque_min_nm = None,
+        torque_max_nm = None,
+        rise_nm_per_s = None,
+        release_nm_per_s = None,
+        safe_release_nm_per_s = None,
+        limit_rule = None,
         hold_after_ms = None,
         safe_after_ms = None,
         fault_after_ms = None,
         state_timeout_ms = None,
+        transport_timeout_ms = None,
+        on_transport_loss = None,
         log_path = None,
+        log_overwrite = None,
         bitrate = None,
         stop_safe_frames = None,
         rx_max_counter_delta = None,
+        rx_sync_frames = None,
+        rx_max_strikes = None,
         trace_capacity = None,
         rt_priority = None,
     ))]
@@ -252,63 +282,140 @@ impl PyBridge {
         py: Python<'_>,
         channel: &Bound<'_, PyAny>,
         period_ms: Option<&Bound<'_, PyAny>>,
-        max_torque_nm: Option<&Bound<'_, PyAny>>,
-        max_rate_nm_per_tick: Option<&Bound<'_, PyAny>>,
+        config: Option<&Bound<'_, PyAny>>,
+        torque_min_nm: Option<&Bound<'_, PyAny>>,
+        torque_max_nm: Option<&Bound<'_, PyAny>>,
+        rise_nm_per_s: Option<&Bound<'_, PyAny>>,
+        release_nm_per_s: Option<&Bound<'_, PyAny>>,
+        safe_release_nm_per_s: Option<&Bound<'_, PyAny>>,
+        limit_rule: Option<&Bound<'_, PyAny>>,
         hold_after_ms: Option<&Bound<'_, PyAny>>,
         safe_after_ms: Option<&Bound<'_, PyAny>>,
         fault_after_ms: Option<&Bound<'_, PyAny>>,
         state_timeout_ms: Option<&Bound<'_, PyAny>>,
+        transport_timeout_ms: Option<&Bound<'_, PyAny>>,
+        on_transport_loss: Option<&Bound<'_, PyAny>>,
         log_path: Option<&Bound<'_, PyAny>>,
+        log_overwrite: Option<&Bound<'_, PyAny>>,
         bitrate: Option<&Bound<'_, PyAny>>,
         stop_safe_frames: Option<&Bound<'_, PyAny>>,
         rx_max_counter_delta: Option<&Bound<'_, PyAny>>,
+        rx_sync_frames: Option<&Bound<'_, PyAny>>,
+        rx_max_strikes: Option<&Bound<'_, PyAny>>,
         trace_capacity: Option<&Bound<'_, PyAny>>,
         rt_priority: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
         let build = || -> Result<Bridge, Error> {
             let channel: String = channel.extract().map_err(|_| {
-                Error::Config(format!("channel must be a str, got {}", repr(channel)))
+                Error::Config(format!(
+                    "channel must be a str, got {}",
+                    short_repr(channel)
+                ))
             })?;
-            let max_torque = match max_torque_nm {
-                Some(obj) if !obj.is_none() => match real(obj) {
-                    Ok(v) => [v; 4],
-                    Err(NotReal::OutOfRange) => {
+            let mut cfg = BridgeConfig::new(&channel);
+            if let Some(path) = config.filter(|o| !o.is_none()) {
+                let p: PathBuf = path.extract().map_err(|_| {
+                    Error::Config(format!(
+                        "config must be a str or os.PathLike, got {}",
+                        short_repr(path)
+                    ))
+                })?;
+                crate::config::apply_file(&mut cfg, &p)?;
+            }
+            let ms = |name: &str, obj: Option<&Bound<'_, PyAny>>, slot: &mut u64| {
+                if let Some(v) = opt_f64(name, obj)? {
+                    *slot = ms_to_ns(name, v)?;
+                }
+                Ok::<(), Error>(())
+            };
+            ms("period_ms", period_ms, &mut cfg.period_ns)?;
+            ms(
+                "hold_after_ms",
+                hold_after_ms,
+                &mut cfg.safety.hold_after_ns,
+            )?;
+            ms(
+                "safe_after_ms",
+                safe_after_ms,
+                &mut cfg.safety.safe_after_ns,
+            )?;
+            ms(
+                "fault_after_ms",
+                fault_after_ms,
+                &mut cfg.safety.fault_after_ns,
+            )?;
+            ms(
+                "state_timeout_ms",
+                state_timeout_ms,
+                &mut cfg.state_timeout_ns,
+            )?;
+            ms(
+                "transport_timeout_ms",
+                transport_timeout_ms,
+                &mut cfg.transport_timeout_ns,
+            )?;
+            let wheels = &mut cfg.safety.wheels;
+            if let Some(v) = per_wheel("torque_min_nm", torque_min_nm)? {
+                wheels.iter_mut().zip(v).for_each(|(w, x)| w.min_nm = x);
+            }
+            if let Some(v) = per_wheel("torque_max_nm", torque_max_nm)? {
+                wheels.iter_mut().zip(v).for_each(|(w, x)| w.max_nm = x);
+            }
+            if let Some(v) = per_wheel("rise_nm_per_s", rise_nm_per_s)? {
+                wheels
+                    .iter_mut()
+                    .zip(v)
+                    .for_each(|(w, x)| w.rise_nm_per_s = x);
+            }
+            if let Some(v) = per_wheel("release_nm_per_s", release_nm_per_s)? {
+                wheels
+                    .iter_mut()
+                    .zip(v)
+                    .for_each(|(w, x)| w.release_nm_per_s = x);
+            }
+            if let Some(v) = opt_f64("safe_release_nm_per_s", safe_release_nm_per_s)? {
+                cfg.safety.safe_release_nm_per_s = v;
+            }
+            if let Some(o) = limit_rule.filter(|o| !o.is_none()) {
+                let s: String = o.extract().map_err(|_| {
+                    Error::Config(format!(
+                        "limit_rule must be \"clamp\" or \"refuse\", got {}",
+                        short_repr(o)
+                    ))
+                })?;
+                cfg.safety.limit_rule = LimitRule::parse(&s)?;
+            }
+            if let Some(o) = on_transport_loss.filter(|o| !o.is_none()) {
+                let s: Option<String> = o.extract().ok();
+                cfg.on_transport_loss = match s.as_deref() {
+                    Some("report") => OnTransportLoss::Report,
+                    Some("raise") => OnTransportLoss::Raise,
+                    _ => {
                         return Err(Error::Config(format!(
-                            "max_torque_nm = {} is out of range (too large for a float)",
-                            short_repr(obj)
+                            "on_transport_loss must be \"report\" or \"raise\", got {}",
+                            short_repr(o)
                         )))
                     }
-                    Err(NotReal::Type) => four_floats(obj, "max_torque_nm", Error::Config)?,
-                },
-                _ => SafetyConfig::default().max_torque_nm,
-            };
-            let defaults = SafetyConfig::default();
-            let ms = |name: &str, obj, default_ns: u64| {
-                ms_to_ns(name, arg_f64(name, obj, default_ns as f64 / 1e6)?)
-            };
-            let mut cfg = BridgeConfig::new(&channel);
-            cfg.period_ns = ms("period_ms", period_ms, cfg.period_ns)?;
-            cfg.safety = SafetyConfig {
-                max_torque_nm: max_torque,
-                max_delta_nm_per_tick: arg_f64(
-                    "max_rate_nm_per_tick",
-                    max_rate_nm_per_tick,
-                    defaults.max_delta_nm_per_tick,
-                )?,
-                hold_after_ns: ms("hold_after_ms", hold_after_ms, defaults.hold_after_ns)?,
-                safe_after_ns: ms("safe_after_ms", safe_after_ms, defaults.safe_after_ns)?,
-                fault_after_ns: ms("fault_after_ms", fault_after_ms, defaults.fault_after_ns)?,
-            };
-            cfg.state_timeout_ns = ms("state_timeout_ms", state_timeout_ms, cfg.state_timeout_ns)?;
+                };
+            }
             cfg.log_path = match log_path {
                 Some(o) if !o.is_none() => Some(o.extract::<PathBuf>().map_err(|_| {
                     Error::Config(format!(
                         "log_path must be a str or os.PathLike, got {}",
-                        repr(o)
+                        short_repr(o)
                     ))
                 })?),
                 _ => None,
             };
+            if let Some(o) = log_overwrite.filter(|o| !o.is_none()) {
+                if !o.is_instance_of::<PyBool>() {
+                    return Err(Error::Config(format!(
+                        "log_overwrite must be a bool, got {}",
+                        short_repr(o)
+                    )));
+                }
+                cfg.log_overwrite = o.is_truthy().unwrap_or(false);
+            }
             let int = |name: &str, obj, default: i64, lo: i64, hi: i64| {
                 arg_int(name, obj, default, lo, hi)
             };
@@ -317,7 +424,7 @@ impl PyBridge {
                 "stop_safe_frames",
                 stop_safe_frames,
                 cfg.stop_safe_frames.into(),
-                0,
+                1,
                 100,
             )? as u32;
             cfg.rx_max_counter_delta = int(
@@ -327,6 +434,20 @@ impl PyBridge {
                 1,
                 14,
             )? as u8;
+            cfg.rx_sync_frames = int(
+                "rx_sync_frames",
+                rx_sync_frames,
+                cfg.rx_sync_frames.into(),
+                1,
+                14,
+            )? as u8;
+            cfg.rx_max_strikes = int(
+                "rx_max_strikes",
+                rx_max_strikes,
+                cfg.rx_max_strikes.into(),
+                0,
+                16,
+            )? as u32;
             cfg.trace_capacity = int("trace_capacity", trace_capacity, 0, 0, 10_000_000)? as usize;
             cfg.rt_priority = match rt_priority {
                 Some(o) if !o.is_none() => Some(int("rt_priority", Some(o), 0, 1, 99)? as i32),
@@ -382,8 +503,8 @@ impl PyBridge {
             err(
                 py,
                 Error::Command(format!(
-                    "seq must be an integer in 0..2**64, got {}",
-                    repr(seq)
+                    "seq must be an integer in 0..2**63, got {}",
+                    short_repr(seq)
                 )),
             )
         })?;
@@ -409,6 +530,12 @@ impl PyBridge {
             s.wheel_speeds_radps.map(|w| (w[0], w[1], w[2], w[3])),
         )?;
         d.set_item("age_ms", s.age_ms)?;
+        let status = PyDict::new(py);
+        for (n, st) in RX_NAMES.iter().zip(s.status) {
+            status.set_item(*n, st)?;
+        }
+        d.set_item("status", status)?;
+        d.set_item("reason", s.reason)?;
         Ok(d)
     }
 
@@ -429,9 +556,26 @@ impl PyBridge {
         d.set_item("tx_frames", s.tx_frames)?;
         d.set_item("tx_errors", s.tx_errors)?;
         d.set_item("tx_not_open", s.tx_not_open)?;
+        d.set_item("tx_stale_dropped", s.tx_stale_dropped)?;
+        d.set_item("send_max_ms", s.send_max_ns as f64 / 1e6)?;
+        let a = s.applied_torques_nm;
+        d.set_item("applied_torques_nm", (a[0], a[1], a[2], a[3]))?;
+        d.set_item("limit_events", s.limit_events)?;
+        d.set_item("last_limit_event", s.last_limit_event)?;
+        d.set_item("rate_limited_ticks", s.rate_limited_ticks)?;
+        d.set_item("transport_state", s.transport_state.name())?;
+        d.set_item("transport_losses", s.transport_losses)?;
+        d.set_item("reconnects", s.reconnects)?;
+        d.set_item("replies_dropped", s.replies_dropped)?;
         d.set_item("rx_frames", s.rx_frames)?;
         d.set_item("rx_crc_errors", s.rx_crc_errors)?;
         d.set_item("rx_counter_errors", s.rx_counter_errors)?;
+        d.set_item("rx_repeated", s.rx_repeated)?;
+        d.set_item("rx_two_sources", s.rx_two_sources)?;
+        d.set_item("rx_wrong_sequence", s.rx_wrong_sequence)?;
+        d.set_item("rx_lost_frames", s.rx_lost_frames)?;
+        d.set_item("rx_sync", s.rx_sync)?;
+        d.set_item("rx_implausible", s.rx_implausible)?;
         d.set_item("rx_length_errors", s.rx_length_errors)?;
         d.set_item("rx_malformed", s.rx_malformed)?;
         d.set_item("rx_unknown_id", s.rx_unknown_id)?;
@@ -439,8 +583,18 @@ impl PyBridge {
         d.set_item("bus_errors", s.bus_errors)?;
         d.set_item("log_dropped", s.log_dropped)?;
         d.set_item("log_errors", s.log_errors)?;
-        d.set_item("safety_state", s.safety_state.name())?;
+        let lost = s.transport_state == crate::bridge::TransportState::Lost;
+        d.set_item(
+            "safety_state",
+            if lost && s.running {
+                "lost"
+            } else {
+                s.safety_state.name()
+            },
+        )?;
+        d.set_item("tx_mode", s.safety_state.name())?;
         d.set_item("state_valid", s.state_valid)?;
+        d.set_item("state_reason", s.state_reason)?;
         d.set_item("last_tx_error", s.last_tx_error)?;
         d.set_item("last_rx_error", s.last_rx_error)?;
         Ok(d)
@@ -581,10 +735,26 @@ fn encode_message<'py>(
     Ok(PyBytes::new(py, f.data()))
 }
 
-/// The AUTOSAR E2E Profile 1 CRC of `data` (byte 0 ignored) for `data_id`.
+/// The AUTOSAR E2E Profile 1 CRC of `data` (byte 0 ignored) for `data_id`
+/// (an integer in 0..=65535, else `ConfigError`).
 #[pyfunction]
-fn e2e_p01_crc(data_id: u16, data: &[u8]) -> u8 {
-    crate::e2e::p01_crc(data_id, data)
+fn e2e_p01_crc(py: Python<'_>, data_id: &Bound<'_, PyAny>, data: &[u8]) -> PyResult<u8> {
+    let id = if is_bool(data_id) {
+        None
+    } else {
+        data_id.extract::<i64>().ok()
+    }
+    .and_then(|v| u16::try_from(v).ok())
+    .ok_or_else(|| {
+        err(
+            py,
+            Error::Config(format!(
+                "data_id = {} must be an integer in 0..=65535",
+                short_repr(data_id)
+            )),
+        )
+    })?;
+    Ok(crate::e2e::p01_crc(id, data))
 }
 
 #[pymodule]
@@ -594,5 +764,6 @@ fn native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(encode_message, m)?)?;
     m.add_function(wrap_pyfunction!(e2e_p01_crc, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add("DEFAULT_CONFIG_TOML", crate::config::DEFAULT_TOML)?;
     Ok(())
 }

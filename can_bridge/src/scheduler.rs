@@ -187,9 +187,12 @@ impl TickStats {
         }
     }
 
-    /// Record one tick's wake-up.
-    pub fn record_wake(&mut self, rec: TickRecord) {
-        let late = rec.wake_ns.saturating_sub(rec.deadline_ns);
+    /// Record one tick's wake-up. Lateness is measured from `due_ns`, the
+    /// first deadline not yet served: after skipped deadlines it is the
+    /// whole wait, not just the distance to the deadline the tick woke for
+    /// (`test_f6_a_flooding_peer_cannot_starve_the_ticker`).
+    pub fn record_wake(&mut self, rec: TickRecord, due_ns: u64) {
+        let late = rec.wake_ns.saturating_sub(due_ns.min(rec.deadline_ns));
         self.ticks += 1;
         self.sum_ns += u128::from(late);
         self.max_ns = self.max_ns.max(late);
@@ -300,11 +303,14 @@ mod tests {
         for k in 0..100u64 {
             let d = k * 50_000_000;
             let late = if k == 99 { 5_000_000 } else { 20_000 };
-            st.record_wake(TickRecord {
-                index: k,
-                deadline_ns: d,
-                wake_ns: d + late,
-            });
+            st.record_wake(
+                TickRecord {
+                    index: k,
+                    deadline_ns: d,
+                    wake_ns: d + late,
+                },
+                d,
+            );
         }
         st.record_skip(0);
         st.record_skip(2);

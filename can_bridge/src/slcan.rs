@@ -55,13 +55,72 @@ pub fn encode(frame: &CanFrame) -> Line {
     l
 }
 
+/// A command or reply line that is not a frame (e.g. `O`, `S6`, `V1013`),
+/// kept whole so each role can check it exactly.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CmdLine {
+    buf: [u8; MAX_LINE],
+    len: usize,
+}
+
+impl CmdLine {
+    fn new(line: &[u8]) -> Self {
+        let mut buf = [0u8; MAX_LINE];
+        let len = line.len().min(MAX_LINE);
+        buf[..len].copy_from_slice(&line[..len]);
+        CmdLine { buf, len }
+    }
+
+    /// The line without its terminator.
+    pub fn as_bytes(&self) -> &[u8] {
+        &self.buf[..self.len]
+    }
+}
+
+/// A command a host may send to an adapter (the device role's view).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Cmd {
+    /// `O`: open the channel.
+    Open,
+    /// `L`: open listen-only (the host will not transmit).
+    Listen,
+    /// `C`: close the channel.
+    Close,
+    /// `V`: hardware/firmware version.
+    Version,
+    /// `N`: serial number.
+    Serial,
+    /// `F`: status flags.
+    Flags,
+    /// `S0`..`S8`, `sxxxx`, `Z0`/`Z1`, `Mxxxxxxxx`, `mxxxxxxxx`: a setting.
+    Setting,
+}
+
+/// A command line parsed exactly: `Cxyz-garbage` is not `C`.
+pub fn parse_command(line: &[u8]) -> Option<Cmd> {
+    let hex = |d: &[u8], n: usize| d.len() == n && d.iter().all(|b| hex_val(*b).is_some());
+    Some(match line {
+        b"O" => Cmd::Open,
+        b"L" => Cmd::Listen,
+        b"C" => Cmd::Close,
+        b"V" => Cmd::Version,
+        b"N" => Cmd::Serial,
+        b"F" => Cmd::Flags,
+        [b'S', b'0'..=b'8'] | [b'Z', b'0' | b'1'] => Cmd::Setting,
+        [b's', rest @ ..] if hex(rest, 4) => Cmd::Setting,
+        [b'M' | b'm', rest @ ..] if hex(rest, 8) => Cmd::Setting,
+        _ => return None,
+    })
+}
+
 /// What one complete line means.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Event {
     /// A data or remote frame.
     Frame(CanFrame),
-    /// A command line (first byte, e.g. `O`, `C`, `S`, `V`), for the device role.
-    Command(u8),
+    /// A line starting with a letter that is not a frame: a command (device
+    /// role) or a reply such as `V1013` (host role).
+    Command(CmdLine),
     /// `z`/`Z`: transmit acknowledgement from an adapter.
     TxAck,
     /// An empty line: an adapter's OK reply.
@@ -116,7 +175,7 @@ pub fn parse_line(line: &[u8]) -> Event {
         b'r' => (3, false, true),
         b'R' => (8, true, true),
         b'z' | b'Z' if rest.is_empty() => return Event::TxAck,
-        b'A'..=b'Z' | b'a'..=b'z' => return Event::Command(first),
+        b'A'..=b'Z' | b'a'..=b'z' => return Event::Command(CmdLine::new(line)),
         _ => return Event::Malformed,
     };
     parse_frame(rest, id_digits, extended, remote).map_or(Event::Malformed, Event::Frame)
@@ -220,14 +279,33 @@ mod tests {
                 Event::Frame(CanFrame::new(0x123, false, &[0xDE, 0xAD, 0xBE, 0xEF]).unwrap()),
                 Event::Frame(CanFrame::new(0x101, false, &[0x11, 0x22]).unwrap()),
                 Event::Ok,
-                Event::Command(b'O'),
-                Event::Command(b'S'),
+                Event::Command(CmdLine::new(b"O")),
+                Event::Command(CmdLine::new(b"S6")),
                 Event::TxAck,
                 Event::Bell,
                 Event::Frame(CanFrame::new(0x1FFFFFFF, true, &[]).unwrap()),
                 Event::Frame(CanFrame::remote(1, true, 3).unwrap()),
             ]
         );
+    }
+
+    #[test]
+    fn commands_are_parsed_exactly() {
+        assert_eq!(parse_command(b"C"), Some(Cmd::Close));
+        assert_eq!(parse_command(b"L"), Some(Cmd::Listen));
+        assert_eq!(parse_command(b"S6"), Some(Cmd::Setting));
+        assert_eq!(parse_command(b"s1A2B"), Some(Cmd::Setting));
+        for bad in [
+            &b"Cxyz-garbage"[..],
+            b"S9",
+            b"Ox",
+            b"V1",
+            b"s12",
+            b"Z2",
+            b"Q",
+        ] {
+            assert_eq!(parse_command(bad), None, "{bad:?}");
+        }
     }
 
     #[test]

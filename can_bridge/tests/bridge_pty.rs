@@ -78,7 +78,11 @@ fn mode_and_torques(f: &CanFrame) -> (u8, [f64; 4]) {
 fn bridge_over_pty_end_to_end() {
     let mut cfg = BridgeConfig::new("slcan-pty:");
     cfg.period_ns = 10_000_000;
-    cfg.safety.max_delta_nm_per_tick = 1000.0;
+    for w in &mut cfg.safety.wheels {
+        w.rise_nm_per_s = 1e5;
+        w.release_nm_per_s = 1e5;
+    }
+    cfg.safety.hold_after_ns = 100_000_000;
     let bridge = Bridge::new(cfg).unwrap();
     bridge.start().unwrap();
     let peer = Peer::open(&bridge.pty_path().unwrap());
@@ -88,12 +92,12 @@ fn bridge_over_pty_end_to_end() {
     let mut frames = vec![];
     for _ in 0..20 {
         seq += 1;
-        bridge.set_command([12.0, -12.0, 0.5, 299.5], seq).unwrap();
+        bridge.set_command([-12.0, -12.0, 2.0, 300.0], seq).unwrap();
         frames.extend(peer.read_frames(&mut dec, |v| !v.is_empty(), Duration::from_millis(200)));
     }
     assert!(frames.len() >= 15);
     let last = mode_and_torques(frames.last().unwrap());
-    assert_eq!(last, (Mode::Active as u8, [12.0, -12.0, 0.5, 299.5]));
+    assert_eq!(last, (Mode::Active as u8, [-12.0, -12.0, 2.0, 300.0]));
     for w in frames.windows(2) {
         assert_eq!(
             e2e::counter_of(w[1].data()),

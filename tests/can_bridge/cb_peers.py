@@ -27,11 +27,15 @@ def data_id(name: str) -> int:
     return int(db().get_message_by_name(name).dbc.attributes["E2EDataID"].value)
 
 
-def protect(name: str, values: dict[str, float], counter: int) -> bytes:
+def protect(
+    name: str, values: dict[str, float], counter: int, *, strict: bool | None = None
+) -> bytes:
     """cantools encode + autosar-e2e CRC: the peer's own framing."""
     msg = db().get_message_by_name(name)
-    # strict=False only to let a test build the invalid counter 15.
-    data = bytearray(msg.encode({"CRC": 0, "Counter": counter, **values}, strict=counter <= 14))
+    # strict=False only to let a test build the invalid counter 15 or a value
+    # outside the DBC's range (an implausible sensor).
+    strict = counter <= 14 if strict is None else strict
+    data = bytearray(msg.encode({"CRC": 0, "Counter": counter, **values}, strict=strict))
     e2e.p01.e2e_p01_protect(data, data_id(name), increment_counter=False)
     return bytes(data)
 
@@ -39,9 +43,14 @@ def protect(name: str, values: dict[str, float], counter: int) -> bytes:
 class CmdChecker:
     """Checks WheelTorqueCmd frames one by one: ID, DLC, CRC (autosar-e2e),
     counter continuity, and that cantools re-encodes the decoded values to the
-    same bytes."""
+    same bytes. With ``continuous=True`` the counter must step by one; by
+    default it may skip values (a frame dropped for its age advances the
+    counter, so the receiver sees it as lost; 15 dropped frames look like a
+    repeat): the skips are counted in ``gaps``."""
 
-    def __init__(self) -> None:
+    def __init__(self, *, continuous: bool = False) -> None:
+        self.continuous = continuous
+        self.gaps = 0
         self.msg = db().get_message_by_name("WheelTorqueCmd")
         self.did = data_id("WheelTorqueCmd")
         self.prev: int | None = None
@@ -56,7 +65,9 @@ class CmdChecker:
         counter = data[1] & 0x0F
         assert counter <= 14
         if self.prev is not None:
-            assert counter == (self.prev + 1) % 15, f"counter {self.prev} -> {counter}"
+            step = (counter - self.prev) % 15
+            assert step == 1 or not self.continuous, f"counter {self.prev} -> {counter}"
+            self.gaps += step != 1
         self.prev = counter
         values = self.msg.decode(bytes(data), decode_choices=False)
         again = bytearray(self.msg.encode(values))
@@ -115,9 +126,14 @@ def slcan_peer(bridge: can_bridge.Bridge) -> Iterator[can.BusABC]:
 
 
 def state_message(
-    name: str, values: dict[str, float], counter: int, *, corrupt: bool = False
+    name: str,
+    values: dict[str, float],
+    counter: int,
+    *,
+    corrupt: bool = False,
+    strict: bool | None = None,
 ) -> can.Message:
-    data = bytearray(protect(name, values, counter))
+    data = bytearray(protect(name, values, counter, strict=strict))
     if corrupt:
         data[2] ^= 0x01
     return can.Message(

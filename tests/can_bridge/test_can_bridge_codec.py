@@ -140,15 +140,15 @@ def test_encode_message_accepts_every_profile1_counter() -> None:
     [
         (
             "WheelTorqueCmd",
-            {**_TORQUE, "TorqueFL": 1020},
-            r"TorqueFL = 1020 .*range -1000\.\.=1000",
+            {**_TORQUE, "TorqueFL": 4095},
+            r"TorqueFL = 4095 .*range -4096\.\.=4094",
         ),
-        ("WheelTorqueCmd", {**_TORQUE, "TorqueRR": -1000.5}, r"TorqueRR = -1000.5 .*range"),
+        ("WheelTorqueCmd", {**_TORQUE, "TorqueRR": -4097}, r"TorqueRR = -4097 .*range"),
         ("WheelTorqueCmd", {**_TORQUE, "TorqueFR": 10**400}, r"TorqueFR = 1000.*range"),
         (
             "SteeringState",
-            {"SteeringAngle": 3.3},
-            r"SteeringAngle = 3.3 .*range -3.2768\.\.=3.2767",
+            {"SteeringAngle": 1.5},
+            r"SteeringAngle = 1.5 .*range -1\.\.=1",
         ),
         ("WheelTorqueCmd", {**_TORQUE, "Mode": 4}, r"Mode = 4 .*range 0\.\.=3"),
         ("WheelTorqueCmd", {**_TORQUE, "Mode": 2.6}, r"Mode = 2.6 is not an integer"),

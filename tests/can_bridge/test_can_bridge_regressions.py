@@ -1,5 +1,5 @@
 """Regression tests for reviewed defects: limits enforced on the wire value,
-stop frames reaching a slow peer, reset_fault without a fault, log write
+a slow peer under the age rule, reset_fault without a fault, log write
 errors, a FIFO as log_path, start/stop racing, argument type errors."""
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ def open_raw_peer(path: str) -> int:
 
 
 def parse_cmds(buf: bytes) -> list[dict]:
-    chk = CmdChecker()
+    chk = CmdChecker(continuous=False)
     for line in buf.split(b"\r"):
         if line.startswith(b"t"):
             ident = int(line[1:4], 16)
@@ -37,63 +37,78 @@ def parse_cmds(buf: bytes) -> list[dict]:
 
 
 @pytest.mark.parametrize(
-    ("max_torque", "rate"),
+    ("max_torque", "rise"),
     [
-        (300.3, 1000.0),
-        ((100.8, 50.0, 0.76, 999.9), 1000.0),
-        (300.0, 1.3),
-        ((10.0, 2.9, 3.1, 1.2), 0.7),
+        (300.3, 1e5),
+        ((100.9, 50.0, 2.7, 999.9), 1e5),
+        (300.0, 450.0),
+        ((10.0, 2.9, 3.1, 1.2), 700.0),
     ],
 )
-def test_torque_and_step_on_the_wire_never_exceed_the_limits(max_torque, rate) -> None:
+def test_torque_and_step_on_the_wire_never_exceed_the_limits(max_torque, rise) -> None:
     limits = max_torque if isinstance(max_torque, tuple) else (max_torque,) * 4
+    period = 0.005
     bridge = can_bridge.Bridge(
         "slcan-pty:",
-        period_ms=5,
-        max_torque_nm=max_torque,
-        max_rate_nm_per_tick=rate,
-        hold_after_ms=2000,
+        period_ms=period * 1e3,
+        torque_min_nm=tuple(-x for x in limits),
+        torque_max_nm=limits,
+        rise_nm_per_s=rise,
+        release_nm_per_s=rise,
+        hold_after_ms=1000,
         safe_after_ms=3000,
         fault_after_ms=4000,
     )
     chk = CmdChecker()
     with slcan_peer(bridge) as bus:
-        bridge.set_command((1000.0, -1000.0, 1000.0, -1000.0), seq=1)
-        # Limits round toward zero onto the 0.5 Nm grid: 300.3 -> 300.0, ...
-        want = tuple(
-            s * (int(lim / 0.5) * 0.5) for s, lim in zip((1, -1, 1, -1), limits, strict=True)
-        )
-        frames = recv_until(bus, chk, lambda f: f["torques"] == want, timeout=20)
+        seq = 0
+
+        def fresh(f: dict) -> bool:
+            nonlocal seq
+            seq += 1
+            bridge.set_command((4000.0, -4000.0, 4000.0, -4000.0), seq)
+            return f["torques"] == want
+
+        # Limits round toward zero onto the 2 Nm grid: 300.3 -> 300, 2.7 -> 2, ...
+        want = tuple(s * (int(lim / 2) * 2) for s, lim in zip((1, -1, 1, -1), limits, strict=True))
+        frames = recv_until(bus, chk, fresh, timeout=20)
     active = [f for f in frames if f["mode"] == "active"]
     assert active
     for f in frames:
         assert all(abs(t) <= lim for t, lim in zip(f["torques"], limits, strict=True)), f
     prev = (0.0,) * 4
     for f in active:
-        assert all(abs(b - a) <= rate for a, b in zip(prev, f["torques"], strict=True)), (prev, f)
+        steps = [abs(b - a) for a, b in zip(prev, f["torques"], strict=True)]
+        assert all(d <= rise * period + 1e-9 for d in steps), (prev, f)
         prev = f["torques"]
 
 
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"max_torque_nm": 0.3}, r"max_torque_nm\[0\] = 0.3 .*resolution"),
-        ({"max_torque_nm": (100.0, 100.0, 0.26, 100.0)}, r"max_torque_nm\[2\].*resolution"),
-        ({"max_rate_nm_per_tick": 0.2}, "max_rate_nm_per_tick = 0.2 .*resolution"),
-        ({"max_rate_nm_per_tick": 0.3}, "max_rate_nm_per_tick = 0.3 .*resolution"),
+        ({"rise_nm_per_s": 30.0}, r"rise_nm_per_s\[FL\] = 30 Nm/s moves less than one 2 Nm step"),
+        ({"release_nm_per_s": (100.0, 100.0, 10.0, 100.0)}, r"release_nm_per_s\[RL\] = 10 "),
+        ({"safe_release_nm_per_s": 1.0}, "safe_release_nm_per_s = 1 Nm/s moves less"),
+        ({"torque_max_nm": -1.0}, r"torque_max_nm\[FL\] = -1 must be in \[0, 4094\]"),
+        (
+            {"torque_min_nm": (0.0, 0.0, 5.0, 0.0)},
+            r"torque_min_nm\[RL\] = 5 must be in \[-4096, 0\]",
+        ),
     ],
 )
-def test_limits_below_the_wire_resolution_are_refused(kwargs: dict, match: str) -> None:
+def test_limits_below_the_wire_resolution_or_range_are_refused(kwargs: dict, match: str) -> None:
     with pytest.raises(can_bridge.ConfigError, match=match):
         can_bridge.Bridge("slcan-pty:", **kwargs)
 
 
-def test_stop_frames_reach_a_peer_that_reads_only_every_150_ms() -> None:
+def test_a_peer_reading_only_every_150_ms_gets_fresh_frames_and_the_last_stop_frame() -> None:
+    """Under the age rule a slow reader gets the newest frame each time, never
+    a backlog, and the stop sequence's last (zero) frame before the close."""
     bridge = can_bridge.Bridge("slcan-pty:", period_ms=20, stop_safe_frames=3)
     bridge.start()
     fd = open_raw_peer(bridge.pty_path)
     buf = bytearray()
-    ended = threading.Event()
+    reads: list[int] = []
 
     def reader() -> None:
         while True:
@@ -106,14 +121,14 @@ def test_stop_frames_reach_a_peer_that_reads_only_every_150_ms() -> None:
                 break
             if not d:
                 break
+            reads.append(d.count(b"\r"))
             buf.extend(d)
-        ended.set()
 
     th = threading.Thread(target=reader, daemon=True)
     th.start()
     try:
         for i in range(25):
-            bridge.set_command((50.0,) * 4, i + 1)
+            bridge.set_command((-50.0,) * 4, i + 1)
             time.sleep(0.02)
         t0 = time.monotonic()
         bridge.stop()
@@ -123,26 +138,33 @@ def test_stop_frames_reach_a_peer_that_reads_only_every_150_ms() -> None:
         os.close(fd)
     frames = parse_cmds(bytes(buf))
     assert any(f["mode"] == "active" for f in frames)
-    assert [f["mode"] for f in frames[-3:]] == ["safe"] * 3
-    assert all(f["torques"] == (0.0,) * 4 for f in frames[-3:])
+    assert frames[-1]["mode"] == "safe" and frames[-1]["torques"] == (0.0,) * 4
+    assert max(reads) <= 4, reads  # a line or two per read (plus replies), not a backlog
 
 
 def test_reset_fault_without_a_fault_is_a_no_op() -> None:
-    bridge = can_bridge.Bridge("slcan-pty:", period_ms=10, max_rate_nm_per_tick=10.0)
+    bridge = can_bridge.Bridge(
+        "slcan-pty:", period_ms=10, rise_nm_per_s=1000.0, release_nm_per_s=1000.0
+    )
     bridge.start()
     fd = open_raw_peer(bridge.pty_path)
     try:
         seq = 0
-        for _ in range(20):
+        buf = b""
+
+        def command_and_read() -> None:
+            nonlocal seq, buf
             seq += 1
-            bridge.set_command((100.0,) * 4, seq)
-            time.sleep(0.01)
+            bridge.set_command((-100.0,) * 4, seq)
+            # the peer keeps reading (a peer that does not is dropped by the age rule)
+            if select.select([fd], [], [], 0.01)[0]:
+                buf += os.read(fd, 65536)
+
+        for _ in range(20):
+            command_and_read()
         bridge.reset_fault()
         for _ in range(5):
-            seq += 1
-            bridge.set_command((100.0,) * 4, seq)
-            time.sleep(0.01)
-        buf = b""
+            command_and_read()
         end = time.monotonic() + 0.1
         while time.monotonic() < end:
             if select.select([fd], [], [], 0.02)[0]:
@@ -160,11 +182,11 @@ def test_reset_fault_without_a_fault_is_a_no_op() -> None:
     assert all(f["mode"] == "active" for f in tail), [f["mode"] for f in tail]
     for a, b in zip(tail, tail[1:], strict=False):
         assert all(abs(y - x) <= 10.0 for x, y in zip(a["torques"], b["torques"], strict=True))
-    assert tail[-1]["torques"] == (100.0,) * 4
+    assert tail[-1]["torques"] == (-100.0,) * 4
 
 
 def test_log_write_errors_are_counted() -> None:
-    bridge = can_bridge.Bridge("slcan-pty:", period_ms=5, log_path="/dev/full")
+    bridge = can_bridge.Bridge("slcan-pty:", period_ms=5, log_path="/dev/full", log_overwrite=True)
     bridge.start()
     fd = open_raw_peer(bridge.pty_path)
     try:
@@ -181,7 +203,7 @@ def test_log_write_errors_are_counted() -> None:
 def test_fifo_without_reader_as_log_path_is_refused(tmp_path) -> None:
     fifo = tmp_path / "log.fifo"
     os.mkfifo(fifo)
-    bridge = can_bridge.Bridge("slcan-pty:", period_ms=10, log_path=fifo)
+    bridge = can_bridge.Bridge("slcan-pty:", period_ms=10, log_path=fifo, log_overwrite=True)
     result: list[object] = []
 
     def go() -> None:
@@ -245,15 +267,16 @@ def test_racing_start_and_stop_from_threads_never_hangs() -> None:
     ],
 )
 def test_set_command_refuses_unordered_bool_and_complex_torques(torques, match: str) -> None:
-    b = can_bridge.Bridge("slcan-pty:")
-    with pytest.raises(can_bridge.CommandError, match=match):
-        b.set_command(torques, 1)
-    b.set_command((1.0, 2.0, 3.0, 4.0), 1)  # nothing was accepted before
+    with can_bridge.Bridge("slcan-pty:") as b:
+        with pytest.raises(can_bridge.CommandError, match=match):
+            b.set_command(torques, 1)
+        b.set_command((1.0, 2.0, 3.0, 4.0), 1)  # nothing was accepted before
 
 
 def test_set_command_refuses_numpy_complex_and_bool_and_bool_seq() -> None:
     np = pytest.importorskip("numpy")
     b = can_bridge.Bridge("slcan-pty:")
+    b.start()
     with pytest.raises(can_bridge.CommandError, match=r"torques\[0\] .* not a real number"):
         b.set_command(np.array([1, 2, 3, 4], dtype=complex), 1)
     with pytest.raises(can_bridge.CommandError, match=r"torques\[0\] .* not a real number"):
@@ -264,6 +287,7 @@ def test_set_command_refuses_numpy_complex_and_bool_and_bool_seq() -> None:
         with pytest.raises(can_bridge.CommandError, match="seq must be an integer"):
             b.set_command((1.0, 2.0, 3.0, 4.0), seq)
     b.set_command(np.array([1, 2, 3, 4], dtype=np.float32), np.uint64(5))
+    b.stop()
 
 
 @pytest.mark.parametrize(
@@ -273,15 +297,19 @@ def test_set_command_refuses_numpy_complex_and_bool_and_bool_seq() -> None:
         ({"period_ms": True}, "period_ms must be a real number"),
         ({"period_ms": 10**400}, r"period_ms = 1000.* is out of range"),
         ({"hold_after_ms": -(10**400)}, r"hold_after_ms = -1000.* is out of range"),
-        ({"max_torque_nm": 10**400}, r"max_torque_nm = 1000.* is out of range"),
-        ({"max_torque_nm": [1, 2, 3, 10**400]}, r"max_torque_nm\[3\] = 1000.* is out of range"),
-        ({"max_rate_nm_per_tick": "x"}, "max_rate_nm_per_tick must be a real number"),
+        ({"torque_max_nm": 10**400}, r"torque_max_nm = 1000.* is out of range"),
+        ({"torque_max_nm": [1, 2, 3, 10**400]}, r"torque_max_nm\[3\] = 1000.* is out of range"),
+        ({"rise_nm_per_s": "x"}, "rise_nm_per_s must be 4 numbers"),
         ({"hold_after_ms": [1]}, "hold_after_ms must be a real number"),
-        ({"max_torque_nm": True}, r"max_torque_nm"),
+        ({"torque_max_nm": True}, r"torque_max_nm"),
+        ({"limit_rule": "maybe"}, 'limit_rule = "maybe" must be "clamp" or "refuse"'),
+        ({"on_transport_loss": 1}, "on_transport_loss must be"),
+        ({"log_overwrite": 1}, "log_overwrite must be a bool"),
+        ({"config": 5}, "config must be a str or os.PathLike"),
         ({"bitrate": -1}, "bitrate must be an integer in"),
         ({"bitrate": 2**40}, "bitrate must be an integer in"),
         ({"bitrate": 500000.0}, "bitrate must be an integer in"),
-        ({"stop_safe_frames": -1}, "stop_safe_frames must be an integer in 0..=100"),
+        ({"stop_safe_frames": -1}, "stop_safe_frames must be an integer in 1..=100"),
         ({"rx_max_counter_delta": 300}, "rx_max_counter_delta must be an integer in 1..=14"),
         ({"trace_capacity": -1}, "trace_capacity must be an integer in"),
         ({"trace_capacity": 2**70}, "trace_capacity must be an integer in"),
@@ -296,10 +324,10 @@ def test_constructor_type_and_range_errors_name_the_argument(kwargs: dict, match
 
 
 def test_overflowing_torque_is_out_of_range_not_a_type_error() -> None:
-    b = can_bridge.Bridge("slcan-pty:")
-    with pytest.raises(can_bridge.CommandError, match=r"torques\[2\] = 1000.* is out of range"):
-        b.set_command([1.0, 2.0, 10**400, 4.0], 1)
-    b.set_command((1.0, 2.0, 3.0, 4.0), 1)  # nothing was accepted before
+    with can_bridge.Bridge("slcan-pty:") as b:
+        with pytest.raises(can_bridge.CommandError, match=r"torques\[2\] = 1000.* is out of range"):
+            b.set_command([1.0, 2.0, 10**400, 4.0], 1)
+        b.set_command((1.0, 2.0, 3.0, 4.0), 1)  # nothing was accepted before
 
 
 def test_pty_path_is_none_once_stopped() -> None:
@@ -319,16 +347,26 @@ def test_constructor_still_accepts_the_usual_types(tmp_path) -> None:
     b = can_bridge.Bridge(
         "slcan-pty:",
         20,
-        max_torque_nm=[100, 100.0, 50, 50],
-        max_rate_nm_per_tick=5,
+        config=can_bridge.default_config_path(),
+        torque_min_nm=[-100, -100.0, -50, -50],
+        torque_max_nm=[0, 0.0, 50, 50],
+        rise_nm_per_s=500,
+        release_nm_per_s=(1000, 1000, 500.0, 500),
+        safe_release_nm_per_s=400,
+        limit_rule="refuse",
+        transport_timeout_ms=100,
+        on_transport_loss="raise",
+        log_overwrite=False,
         hold_after_ms=100,
         safe_after_ms=200.0,
         fault_after_ms=300,
         state_timeout_ms=250,
         log_path=tmp_path / "x.log",
         bitrate=250000,
-        stop_safe_frames=0,
+        stop_safe_frames=1,
         rx_max_counter_delta=3,
+        rx_sync_frames=1,
+        rx_max_strikes=0,
         trace_capacity=10,
         rt_priority=None,
     )

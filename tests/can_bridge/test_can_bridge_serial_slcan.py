@@ -8,6 +8,7 @@ import select
 import time
 
 import pytest
+from cb_fault_peers import SerialAdapter
 from cb_peers import STEER, CmdChecker, protect
 
 import can_bridge
@@ -50,44 +51,41 @@ def _parse_slcan(line: bytes) -> tuple[int, bool, bytes]:
 
 
 def test_serial_adapter_init_frames_and_receive() -> None:
-    master, slave = os.openpty()
-    path = os.ttyname(slave)
+    adapter = SerialAdapter()
     try:
-        bridge = can_bridge.Bridge(
-            f"slcan:{path}@115200", period_ms=20, bitrate=250000, max_rate_nm_per_tick=1000.0
-        )
+        bridge = can_bridge.Bridge(f"slcan:{adapter.path}@115200", period_ms=20, bitrate=250000)
         bridge.start()
         try:
-            reader = LineReader(master)
-            assert reader.lines(3) == [b"C", b"S5", b"O"]
-            bridge.set_command((7.5, 0.0, -7.5, 100.0), seq=1)
+            # Handshake: a CR ending any half line, close, version query, bit rate, open.
+            assert adapter.commands[:5] == [b"", b"C", b"V", b"S5", b"O"], adapter.commands
+            bridge.set_command((-8.0, 0.0, -8.0, 100.0), seq=1)
+            time.sleep(0.2)
             chk = CmdChecker()
-            for _ in range(50):
-                (line,) = reader.lines(1)
-                f = chk.add(*_parse_slcan(line))
-                if f["mode"] == "active":
-                    break
-            assert f["torques"] == (7.5, 0.0, -7.5, 100.0)
+            frames = [chk.add(*_parse_slcan(line)) for _, line in adapter.lines]
+            active = [f for f in frames if f["mode"] == "active"]
+            assert active and active[-1]["torques"] == (-8.0, 0.0, -8.0, 100.0)
             # The adapter reports a received frame (lower-case hex, with a Z1 timestamp).
             data = protect("SteeringState", STEER, 0)
-            os.write(master, b"t2034" + data.hex().encode() + b"1A2B\r")
+            for c in range(3):
+                data = protect("SteeringState", STEER, c)
+                adapter.send_line(b"t2034" + data.hex().encode() + b"1A2B\r")
             end = time.monotonic() + 2
             while bridge.latest_state()["steering_angle_rad"] is None and time.monotonic() < end:
                 time.sleep(0.02)
             assert bridge.latest_state()["steering_angle_rad"] == pytest.approx(0.0456)
             # Garbage from the adapter is counted, never fatal.
-            os.write(master, b"\x00\xffnot slcan\rt12\r")
+            adapter.send_line(b"\x00\xffnot slcan\rt12\r")
             time.sleep(0.1)
             assert bridge.stats()["rx_malformed"] >= 2
         finally:
             bridge.stop()
-        tail = reader.lines(500, timeout=0.5)
-        assert tail[-1] == b"C"  # closes the adapter's channel on stop
+        time.sleep(0.1)
+        assert adapter.commands[-1] == b"C"  # closes the adapter's channel on stop
         last = CmdChecker()
-        assert [last.add(*_parse_slcan(x))["mode"] for x in tail[-4:-1]] == ["safe"] * 3
+        tail = [last.add(*_parse_slcan(x))["mode"] for _, x in adapter.lines[-3:]]
+        assert tail == ["safe"] * 3
     finally:
-        os.close(master)
-        os.close(slave)
+        adapter.close()
 
 
 def test_missing_serial_device_is_a_transport_error() -> None:

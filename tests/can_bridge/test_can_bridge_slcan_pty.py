@@ -27,22 +27,20 @@ pytestmark = pytest.mark.timeout(60)
 
 
 def test_frames_are_valid_and_follow_the_command() -> None:
-    bridge = can_bridge.Bridge(
-        "slcan-pty:", period_ms=20, max_torque_nm=300.0, max_rate_nm_per_tick=1000.0
-    )
+    bridge = can_bridge.Bridge("slcan-pty:", period_ms=20)
     chk = CmdChecker()
     with slcan_peer(bridge) as bus:
-        bridge.set_command((10.0, -20.5, 30.25, 0.0), seq=1)
+        bridge.set_command((-10.0, -20.5, 30.25, 0.0), seq=1)
         seq = 1
         frames = []
         for _ in range(30):
             seq += 1
-            bridge.set_command((10.0, -20.5, 30.25, 0.0), seq=seq)
+            bridge.set_command((-10.0, -20.5, 30.25, 0.0), seq=seq)
             frames += recv_cmds(bus, chk, 1)
         active = [f for f in frames if f["mode"] == "active"]
         assert len(active) >= 25
-        # 30.25 Nm is sent at the DBC's 0.5 Nm resolution (round half to even).
-        assert all(f["torques"] == (10.0, -20.5, 30.0, 0.0) for f in active)
+        # Sent at the DBC's 2 Nm resolution (round half to even): -20.5 -> -20, 30.25 -> 30.
+        assert all(f["torques"] == (-10.0, -20.0, 30.0, 0.0) for f in active)
         # The peer can read a frame before the transmit thread has counted it
         # (the counter follows the write): let the tick finish before reading stats.
         time.sleep(0.05)
@@ -56,9 +54,11 @@ def test_clamping_to_actuator_limits_and_rate_limit() -> None:
     bridge = can_bridge.Bridge(
         "slcan-pty:",
         period_ms=20,
-        max_torque_nm=(100.0, 100.0, 50.0, 50.0),
-        max_rate_nm_per_tick=10.0,
-        hold_after_ms=2000,
+        torque_min_nm=(-100.0, -100.0, -50.0, -50.0),
+        torque_max_nm=(100.0, 100.0, 50.0, 50.0),
+        rise_nm_per_s=500.0,  # 10 Nm per 20 ms tick
+        release_nm_per_s=500.0,
+        hold_after_ms=1000,
         safe_after_ms=3000,
         fault_after_ms=4000,
     )
@@ -67,7 +67,7 @@ def test_clamping_to_actuator_limits_and_rate_limit() -> None:
         bridge.set_command((500.0, -500.0, 30.0, -1000.0), seq=1)
         frames = recv_until(bus, chk, lambda f: f["torques"] == (100.0, -100.0, 30.0, -50.0))
         active = [f for f in frames if f["mode"] == "active"]
-        assert len(active) >= 10
+        assert len(active) >= 5  # 10 ticks of ramp; a loaded peer may miss a few (age rule)
         for a, b in zip(active, active[1:], strict=False):
             assert all(abs(y - x) <= 10.0 for x, y in zip(a["torques"], b["torques"], strict=False))
         for f in frames:
@@ -82,14 +82,13 @@ def test_nan_and_inf_are_refused_and_never_reach_a_frame() -> None:
     bridge = can_bridge.Bridge(
         "slcan-pty:",
         period_ms=20,
-        max_rate_nm_per_tick=1000.0,
-        hold_after_ms=2000,
+        hold_after_ms=1000,
         safe_after_ms=3000,
         fault_after_ms=4000,
     )
     chk = CmdChecker()
     with slcan_peer(bridge) as bus:
-        bridge.set_command((5.0, 5.0, 5.0, 5.0), seq=1)
+        bridge.set_command((-6.0, -6.0, 6.0, 6.0), seq=1)
         for seq, bad in enumerate(
             [
                 (math.nan, 0, 0, 0),
@@ -110,13 +109,13 @@ def test_nan_and_inf_are_refused_and_never_reach_a_frame() -> None:
         with pytest.raises(can_bridge.CommandError, match="seq must be an integer"):
             bridge.set_command((1.0,) * 4, seq=-1)
         frames = recv_cmds(bus, chk, 15)
-        assert frames[-1]["torques"] == (5.0,) * 4 and frames[-1]["mode"] == "active"
+        assert frames[-1]["torques"] == (-6.0, -6.0, 6.0, 6.0) and frames[-1]["mode"] == "active"
         # Decoded torques are raw integers times 0.5 Nm: always finite, so a
         # refused value that leaked would show as another number (a saturating
         # NaN -> 0 cast, or +-1000 for inf). Every frame carries the one accepted
         # command, or zeros in Safe before it arrived.
         for f in frames:
-            want = (5.0,) * 4 if f["mode"] == "active" else (0.0,) * 4
+            want = (-6.0, -6.0, 6.0, 6.0) if f["mode"] == "active" else (0.0,) * 4
             assert f["mode"] in ("active", "safe") and f["torques"] == want, frames
 
 
@@ -124,7 +123,6 @@ def test_watchdog_hold_safe_latched_fault_and_reset() -> None:
     bridge = can_bridge.Bridge(
         "slcan-pty:",
         period_ms=20,
-        max_rate_nm_per_tick=1000.0,
         hold_after_ms=70,
         safe_after_ms=150,
         fault_after_ms=400,
@@ -134,7 +132,7 @@ def test_watchdog_hold_safe_latched_fault_and_reset() -> None:
         seq = 0
         for _ in range(8):  # a live controller
             seq += 1
-            bridge.set_command((40.0, 40.0, 20.0, 20.0), seq=seq)
+            bridge.set_command((-40.0, -40.0, 20.0, 20.0), seq=seq)
             recv_cmds(bus, chk, 1)
         # Silence: hold, then safe, then fault.
         frames = recv_until(bus, chk, lambda f: f["mode"] == "fault")
@@ -142,23 +140,24 @@ def test_watchdog_hold_safe_latched_fault_and_reset() -> None:
         first = {m: modes.index(m) for m in ("hold", "safe", "fault")}
         assert first["hold"] < first["safe"] < first["fault"]
         for f in frames[first["hold"] : first["safe"]]:
-            assert f["mode"] == "hold" and f["torques"] == (40.0, 40.0, 20.0, 20.0)
+            assert f["mode"] == "hold" and f["torques"] == (-40.0, -40.0, 20.0, 20.0)
+        # Released at the safe rate (8000 Nm/s: 160 Nm per tick, here one tick).
         for f in frames[first["safe"] :]:
             assert f["torques"] == (0.0, 0.0, 0.0, 0.0)
         # Safe lasted about (400 - 150) ms of ticks.
         assert 8 <= first["fault"] - first["safe"] <= 16
         # Latched: a fresh command does not clear it ...
         seq += 1
-        bridge.set_command((40.0, 40.0, 20.0, 20.0), seq=seq)
+        bridge.set_command((-40.0, -40.0, 20.0, 20.0), seq=seq)
         assert all(f["mode"] == "fault" for f in recv_cmds(bus, chk, 5))
         assert bridge.stats()["safety_state"] == "fault"
         # ... only reset_fault does; then Safe until a newer command, then Active.
         bridge.reset_fault()
         recv_until(bus, chk, lambda f: f["mode"] == "safe")
         seq += 1
-        bridge.set_command((40.0, 40.0, 20.0, 20.0), seq=seq)
+        bridge.set_command((-40.0, -40.0, 20.0, 20.0), seq=seq)
         f = recv_until(bus, chk, lambda f: f["mode"] == "active")[-1]
-        assert f["torques"] == (40.0, 40.0, 20.0, 20.0)
+        assert f["torques"] == (-40.0, -40.0, 20.0, 20.0)
 
 
 def test_received_state_checks_crc_counter_and_timeout() -> None:
@@ -180,11 +179,11 @@ def test_received_state_checks_crc_counter_and_timeout() -> None:
         assert st["steering_angle_rad"] == pytest.approx(0.0456)
         assert st["wheel_speeds_radps"] == pytest.approx((40.1, 40.2, 39.9, -1.5))
         # Bad CRC: rejected and counted, value unchanged.
-        bus.send(state_message("VehicleMotion", {**MOTION, "LongSpeed": 99.0}, 3, corrupt=True))
-        # Repeated counter (2 again): rejected and counted.
-        bus.send(state_message("VehicleMotion", {**MOTION, "LongSpeed": 98.0}, 2))
+        bus.send(state_message("VehicleMotion", {**MOTION, "LongSpeed": 89.0}, 3, corrupt=True))
+        # Counter 2 again with other data (a second sender): rejected and counted.
+        bus.send(state_message("VehicleMotion", {**MOTION, "LongSpeed": 88.0}, 2))
         # Counter 15 is invalid in Profile 1.
-        bus.send(state_message("VehicleMotion", {**MOTION, "LongSpeed": 97.0}, 15))
+        bus.send(state_message("VehicleMotion", {**MOTION, "LongSpeed": 87.0}, 15))
         time.sleep(0.15)
         s = bridge.stats()
         assert s["rx_crc_errors"] == 1
@@ -205,9 +204,8 @@ def test_stop_sends_safe_frames_before_closing() -> None:
     bridge = can_bridge.Bridge(
         "slcan-pty:",
         period_ms=20,
-        max_rate_nm_per_tick=1000.0,
         stop_safe_frames=3,
-        hold_after_ms=2000,
+        hold_after_ms=1000,
         safe_after_ms=3000,
         fault_after_ms=4000,
     )
@@ -215,7 +213,7 @@ def test_stop_sends_safe_frames_before_closing() -> None:
     bridge.start()
     bus = can.Bus(interface="slcan", channel=bridge.pty_path, sleep_after_open=0, bitrate=500000)
     try:
-        bridge.set_command((60.0, 60.0, 60.0, 60.0), seq=1)
+        bridge.set_command((-60.0, -60.0, 60.0, 60.0), seq=1)
         recv_until(bus, chk, lambda f: f["mode"] == "active")
         stopper = threading.Thread(target=bridge.stop)
         stopper.start()

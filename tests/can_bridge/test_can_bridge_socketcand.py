@@ -104,15 +104,13 @@ class Server:
 
 def test_socketcand_transport_end_to_end() -> None:
     srv = Server()
-    bridge = can_bridge.Bridge(
-        f"socketcand:127.0.0.1:{srv.port}/can0", period_ms=20, max_rate_nm_per_tick=1000.0
-    )
+    bridge = can_bridge.Bridge(f"socketcand:127.0.0.1:{srv.port}/can0", period_ms=20)
     with bridge:
         seq = 0
         end = time.monotonic() + 0.6
         while time.monotonic() < end:
             seq += 1
-            bridge.set_command((-3.0, 3.0, 250.0, -250.0), seq=seq)
+            bridge.set_command((-4.0, 0.0, 250.0, -250.0), seq=seq)
             time.sleep(0.01)
         st = bridge.latest_state()
     srv.stop.set()
@@ -124,7 +122,10 @@ def test_socketcand_transport_end_to_end() -> None:
     assert len(srv.sent) >= 25
     chk = CmdChecker()
     frames = [chk.add(*s) for s in srv.sent]
-    assert frames[-4]["torques"] == (-3.0, 3.0, 250.0, -250.0) and frames[-4]["mode"] == "active"
+    active = [f for f in frames if f["mode"] == "active"]
+    assert active[-1]["torques"] == (-4.0, 0.0, 250.0, -250.0)
+    # stop: released toward zero at the safe rate (160 Nm per 20 ms tick), then zeros
+    assert [f["torques"] for f in frames[-4:]] == [(0.0, 0.0, 90.0, -90.0)] + [(0.0,) * 4] * 3
     assert [f["mode"] for f in frames[-3:]] == ["safe"] * 3
     assert st["valid"] is True
     assert st["yaw_rate_radps"] == pytest.approx(0.123)

@@ -1,6 +1,6 @@
 from collections.abc import Sequence
 from os import PathLike
-from typing import Literal, TypedDict, final
+from typing import Any, Literal, TypedDict, final
 
 from ._errors import (
     CanBridgeError as CanBridgeError,
@@ -19,8 +19,17 @@ from ._errors import (
 )
 
 __version__: str
+DEFAULT_CONFIG_TOML: str
 
-SafetyState = Literal["active", "hold", "safe", "fault"]
+Mode = Literal["active", "hold", "safe", "fault"]
+SafetyState = Literal["active", "hold", "safe", "fault", "lost"]
+TransportState = Literal["up", "not_open", "lost"]
+PerWheel = float | Sequence[float]
+
+class RxStatus(TypedDict):
+    VehicleMotion: str
+    WheelSpeeds: str
+    SteeringState: str
 
 class VehicleState(TypedDict):
     valid: bool
@@ -30,6 +39,8 @@ class VehicleState(TypedDict):
     steering_angle_rad: float | None
     wheel_speeds_radps: tuple[float, float, float, float] | None
     age_ms: float | None
+    status: RxStatus
+    reason: str | None
 
 class Stats(TypedDict):
     running: bool
@@ -45,9 +56,25 @@ class Stats(TypedDict):
     tx_frames: int
     tx_errors: int
     tx_not_open: int
+    tx_stale_dropped: int
+    send_max_ms: float
+    applied_torques_nm: tuple[float, float, float, float]
+    limit_events: int
+    last_limit_event: str | None
+    rate_limited_ticks: int
+    transport_state: TransportState
+    transport_losses: int
+    reconnects: int
+    replies_dropped: int
     rx_frames: int
     rx_crc_errors: int
     rx_counter_errors: int
+    rx_repeated: int
+    rx_two_sources: int
+    rx_wrong_sequence: int
+    rx_lost_frames: int
+    rx_sync: int
+    rx_implausible: int
     rx_length_errors: int
     rx_malformed: int
     rx_unknown_id: int
@@ -56,7 +83,9 @@ class Stats(TypedDict):
     log_dropped: int
     log_errors: int
     safety_state: SafetyState
+    tx_mode: Mode
     state_valid: bool
+    state_reason: str | None
     last_tx_error: str | None
     last_rx_error: str | None
 
@@ -67,17 +96,27 @@ class Bridge:
         channel: str,
         period_ms: float = 50.0,
         *,
-        max_torque_nm: float | Sequence[float] | None = None,
-        max_rate_nm_per_tick: float = 25.0,
-        hold_after_ms: float = 150.0,
-        safe_after_ms: float = 500.0,
-        fault_after_ms: float = 2000.0,
-        state_timeout_ms: float = 250.0,
+        config: str | PathLike[str] | None = None,
+        torque_min_nm: PerWheel | None = None,
+        torque_max_nm: PerWheel | None = None,
+        rise_nm_per_s: PerWheel | None = None,
+        release_nm_per_s: PerWheel | None = None,
+        safe_release_nm_per_s: float | None = None,
+        limit_rule: Literal["clamp", "refuse"] | None = None,
+        hold_after_ms: float | None = None,
+        safe_after_ms: float | None = None,
+        fault_after_ms: float | None = None,
+        state_timeout_ms: float | None = None,
+        transport_timeout_ms: float | None = None,
+        on_transport_loss: Literal["report", "raise"] | None = None,
         log_path: str | PathLike[str] | None = None,
-        bitrate: int = 500000,
-        stop_safe_frames: int = 3,
-        rx_max_counter_delta: int = 2,
-        trace_capacity: int = 0,
+        log_overwrite: bool | None = None,
+        bitrate: int | None = None,
+        stop_safe_frames: int | None = None,
+        rx_max_counter_delta: int | None = None,
+        rx_sync_frames: int | None = None,
+        rx_max_strikes: int | None = None,
+        trace_capacity: int | None = None,
         rt_priority: int | None = None,
     ) -> None: ...
     def start(self) -> None: ...
@@ -99,5 +138,7 @@ class Bridge:
     def period_ms(self) -> float: ...
 
 def dbc_path() -> str: ...
+def default_config_path() -> str: ...
+def load_config(path: str | PathLike[str] | None = None) -> dict[str, Any]: ...
 def encode_message(name: str, values: dict[str, float | str], counter: int) -> bytes: ...
 def e2e_p01_crc(data_id: int, data: bytes) -> int: ...

@@ -1,5 +1,13 @@
-//! Transports: each opens into a sending half (used by the tick thread) and a
-//! receiving half (used by the receive thread).
+//! Transports: each opens into a sending half (used by the tick thread), a
+//! receiving half (used by the receive thread) and a [`Health`] both share.
+//!
+//! **The age rule.** A torque frame older than one period is never handed to
+//! the bus: before each write the sink looks at what the previous writes
+//! left behind (the pty slave's unread input, a tty's `TIOCOUTQ`, a socket's
+//! `SIOCOUTQ`, or the peer's missing acknowledgement) and flushes it where
+//! the kernel allows, or else does not add to it (`Written::Dropped`). Each
+//! such frame is counted in `tx_stale_dropped`; a transport on which no
+//! frame gets through for `transport_timeout_ms` is reported lost.
 
 pub mod fd;
 pub mod slcan_stream;
@@ -9,14 +17,46 @@ pub mod socketcand;
 use crate::channel::ChannelSpec;
 use crate::error::Result;
 use crate::frame::CanFrame;
+use std::sync::atomic::{AtomicBool, AtomicU64};
+use std::sync::Arc;
 
-/// Outcome of a send that did not fail.
+/// Whether this tick's frame was written.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Sent {
+pub enum Written {
     /// Handed to the transport.
     Yes,
     /// Not sent: the peer has not opened the channel (SLCAN device role).
     NotOpen,
+    /// Not sent: the peer has not taken the previous frame, and adding this
+    /// one would only queue it to arrive stale.
+    Dropped,
+}
+
+/// Outcome of a send that did not fail.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Outcome {
+    /// This frame.
+    pub written: Written,
+    /// Earlier frames flushed from the transport's queue for their age.
+    pub flushed: u32,
+}
+
+impl Outcome {
+    /// Written, nothing flushed.
+    pub const YES: Outcome = Outcome {
+        written: Written::Yes,
+        flushed: 0,
+    };
+    /// Not open.
+    pub const NOT_OPEN: Outcome = Outcome {
+        written: Written::NotOpen,
+        flushed: 0,
+    };
+    /// This frame dropped.
+    pub const DROPPED: Outcome = Outcome {
+        written: Written::Dropped,
+        flushed: 0,
+    };
 }
 
 /// What the receive half delivers.
@@ -30,10 +70,32 @@ pub enum RxItem {
     BusError,
 }
 
-/// Sending half. `send` must not block for longer than a few milliseconds.
+/// Link state both halves share and `stats()` reads.
+#[derive(Debug)]
+pub struct Health {
+    /// False while the link itself is broken (socketcand: connection lost,
+    /// reconnecting): the transport is then lost at once.
+    pub link_up: AtomicBool,
+    /// Successful reconnections.
+    pub reconnects: AtomicU64,
+    /// Replies to an SLCAN peer dropped because it was not reading them.
+    pub replies_dropped: AtomicU64,
+}
+
+impl Default for Health {
+    fn default() -> Self {
+        Health {
+            link_up: AtomicBool::new(true),
+            reconnects: AtomicU64::new(0),
+            replies_dropped: AtomicU64::new(0),
+        }
+    }
+}
+
+/// Sending half. `send` never waits: it makes one non-blocking attempt.
 pub trait Sink: Send {
-    /// Send one frame.
-    fn send(&mut self, frame: &CanFrame) -> Result<Sent>;
+    /// Send one frame (or drop it for the age rule).
+    fn send(&mut self, frame: &CanFrame) -> Result<Outcome>;
     /// Last words before the transport closes (e.g. SLCAN `C`).
     fn close(&mut self) {}
 }
@@ -52,6 +114,8 @@ pub struct Opened {
     pub source: Box<dyn Source>,
     /// Path of the pseudo-terminal slave for `slcan-pty:`.
     pub pty_path: Option<String>,
+    /// Shared link state.
+    pub health: Arc<Health>,
 }
 
 /// Open the transport a channel string names. `bitrate` is the CAN bit rate
@@ -63,4 +127,14 @@ pub fn open(spec: &ChannelSpec, bitrate: u32) -> Result<Opened> {
         ChannelSpec::SlcanPty => slcan_stream::open_pty(),
         ChannelSpec::Socketcand { host, port, bus } => socketcand::open(host, *port, bus),
     }
+}
+
+/// Bytes queued for output on `fd` (`TIOCOUTQ`, which is `SIOCOUTQ` on a
+/// socket: for TCP the bytes the peer has not acknowledged); `None` if the
+/// descriptor cannot tell.
+pub fn out_queue(fd: std::os::fd::RawFd) -> Option<usize> {
+    let mut n: libc::c_int = 0;
+    // SAFETY: TIOCOUTQ writes one c_int to a valid pointer.
+    let rc = unsafe { libc::ioctl(fd, libc::TIOCOUTQ, &mut n) };
+    (rc == 0).then_some(n.max(0) as usize)
 }

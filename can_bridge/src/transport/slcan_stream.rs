@@ -1,21 +1,49 @@
 //! SLCAN over a byte stream: a serial adapter (host role) or a
 //! pseudo-terminal on which the bridge plays the adapter (device role).
+//!
+//! **Whole lines or nothing.** Every write is one non-blocking `write` of a
+//! whole line into a queue that the age rule keeps (nearly) empty, so the
+//! kernel takes it whole; a line the kernel takes only in part is cut off by
+//! flushing (pty) or by a CR before the next line (serial), never glued to
+//! the next one (`test_f5_slcan_lines_stay_whole_when_the_pty_buffer_fills`).
+//!
+//! **Age rule, pty.** Before each frame, bytes the peer has not read since
+//! the last tick (`FIONREAD` on the bridge's own slave handle; `TIOCOUTQ` on
+//! a Linux pty master always reads 0) are flushed (`tcflush(TCIFLUSH)` on
+//! the slave), so the peer never reads a frame older than one period
+//! (`test_f1_no_stale_frame_reaches_a_pty_peer_after_a_stall`). Replies to
+//! the peer's commands are written only while its unread input is below
+//! [`REPLY_ROOM`]; a peer flooding commands without reading the replies
+//! costs dropped replies (counted), never a wait of the transmit thread.
+//!
+//! **Age rule, serial.** A real tty's `TIOCOUTQ` shows bytes not yet sent:
+//! they are flushed (`TCOFLUSH`) and the next line starts with CR, so the
+//! adapter discards a line cut by the flush. An adapter that acknowledges
+//! frames (`z`/`Z`/CR, Lawicel) and has not acknowledged the last one gets no
+//! new frame (it is probed with `V` instead), so after a stall it finds at
+//! most the one frame in flight (`test_f1_no_stale_frames_from_a_stalled_serial_adapter`).
+//! On start the adapter must answer `V` (version) within [`HANDSHAKE`], or
+//! `start()` fails (`test_f8_slcan_without_an_adapter_is_refused_at_start`).
 
 use super::fd::{make_raw, Fd};
-use super::{Opened, RxItem, Sent, Sink, Source};
+use super::{out_queue, Health, Opened, Outcome, RxItem, Sink, Source, Written};
 use crate::channel::{baud_constant, slcan_bitrate_code};
-use crate::error::{Error, Result};
+use crate::error::{clip, Error, Result};
 use crate::frame::CanFrame;
-use crate::slcan::{self, Event};
+use crate::slcan::{self, parse_command, Cmd, Event};
 use std::collections::VecDeque;
 use std::ffi::CString;
 use std::io;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
-/// Longest wait for room in the output buffer per frame, ms.
-const WRITE_BUDGET_MS: i32 = 5;
+/// Most unread bytes the peer may have before a reply is dropped instead of
+/// written (a line is at most 27 bytes; the pty's line discipline holds 4096).
+pub const REPLY_ROOM: usize = 512;
+
+/// Longest wait at start for each handshake reply of a serial adapter.
+pub const HANDSHAKE: Duration = Duration::from_millis(500);
 
 /// Longest wait at close for the pty peer to read what was written (the
 /// safe frames of `stop`): closing the master discards unread output.
@@ -23,7 +51,9 @@ const DRAIN_BUDGET: Duration = Duration::from_millis(200);
 
 struct Port {
     fd: Fd,
-    /// Serialises writes of the two threads so lines never interleave.
+    /// Serialises writes of the two threads so lines never interleave. Held
+    /// only around one `ioctl` and one non-blocking `write`: the transmit
+    /// thread never waits behind the receive thread for longer than that.
     write_lock: Mutex<()>,
     /// For a pty: our own handle on the slave, so the master never sees a
     /// hang-up while no peer is connected; also how we see unread output.
@@ -31,15 +61,34 @@ struct Port {
     what: String,
 }
 
+fn cut() -> io::Error {
+    io::Error::new(
+        io::ErrorKind::WouldBlock,
+        "output buffer full; the line was not written",
+    )
+}
+
 impl Port {
-    fn write_line(&self, bytes: &[u8], budget_ms: i32) -> io::Result<()> {
-        let _g = self.write_lock.lock().unwrap_or_else(|e| e.into_inner());
-        self.fd.write_all_within(bytes, budget_ms)
+    /// One non-blocking write of a whole line: `Ok(true)` written,
+    /// `Ok(false)` nothing written (full), `Err` on a partial write.
+    fn write_once(&self, bytes: &[u8]) -> io::Result<bool> {
+        loop {
+            match self.fd.write(bytes) {
+                Ok(n) if n == bytes.len() => return Ok(true),
+                Ok(_) => return Err(cut()),
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => return Ok(false),
+                Err(e) => return Err(e),
+            }
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, ()> {
+        self.write_lock.lock().unwrap_or_else(|e| e.into_inner())
     }
 
     /// Bytes written to a pty master that the peer has not read yet (the
-    /// slave's input queue, `FIONREAD` on our slave handle). `TIOCOUTQ` on
-    /// the master does not work for this: Linux reports 0 there.
+    /// slave's input queue, `FIONREAD` on our slave handle).
     fn unread_by_peer(&self) -> Option<usize> {
         let keeper = self.slave_keeper.as_ref()?;
         let mut n: libc::c_int = 0;
@@ -48,13 +97,21 @@ impl Port {
         (rc == 0).then_some(n.max(0) as usize)
     }
 
+    /// Discard what the pty peer has not read.
+    fn flush_unread(&self) {
+        if let Some(k) = &self.slave_keeper {
+            // SAFETY: k is an open tty descriptor.
+            unsafe { libc::tcflush(k.raw(), libc::TCIFLUSH) };
+        }
+    }
+
     /// Wait (at most `budget`) until the peer has read everything written to
     /// the pty. Requires two empty readings 2 ms apart, so bytes still on
     /// their way from the master to the slave's queue are not missed.
     fn drain(&self, budget: Duration) {
-        let end = std::time::Instant::now() + budget;
+        let end = Instant::now() + budget;
         let mut empty = 0;
-        while std::time::Instant::now() < end {
+        while Instant::now() < end {
             match self.unread_by_peer() {
                 None => return,
                 Some(0) => {
@@ -70,43 +127,140 @@ impl Port {
     }
 }
 
+/// The device role's channel state, set by the peer's `O`/`L`/`C`.
+#[derive(Debug, Default)]
+struct Channel {
+    open: AtomicBool,
+    listen_only: AtomicBool,
+}
+
+/// The host role's view of the adapter's acknowledgements.
+#[derive(Debug, Default)]
+struct Acks {
+    /// The adapter has answered a frame: it acknowledges (Lawicel `z`).
+    known: AtomicBool,
+    /// A reply arrived since the last frame was written.
+    replied: AtomicBool,
+    /// A frame has been written since the handshake.
+    wrote: AtomicBool,
+    /// Ticks held since the last frame waiting for an acknowledgement; a `V`
+    /// probe goes out on the first and every [`REPROBE_TICKS`]th (a lost
+    /// answer must not hold frames forever).
+    held: std::sync::atomic::AtomicU32,
+}
+
+/// See [`Acks::held`].
+const REPROBE_TICKS: u32 = 5;
+
 #[derive(Clone)]
 enum Role {
     /// We are the adapter: frames go out only while the peer has the channel open.
-    Device { open: Arc<AtomicBool> },
+    Device(Arc<Channel>),
     /// We drive an adapter.
-    Host,
+    Host(Arc<Acks>),
 }
 
 struct SlcanSink {
     port: Arc<Port>,
     role: Role,
+    /// Start the next line with CR: a cut line may be on the wire.
+    need_cr: bool,
+}
+
+impl SlcanSink {
+    fn write_frame(&mut self, line: &[u8]) -> Result<bool> {
+        let mut buf = [0u8; 40];
+        let mut n = 0;
+        if self.need_cr {
+            buf[0] = b'\r';
+            n = 1;
+        }
+        let end = (n + line.len()).min(buf.len());
+        buf[n..end].copy_from_slice(&line[..end - n]);
+        match self.port.write_once(&buf[..end]) {
+            Ok(w) => {
+                if w {
+                    self.need_cr = false;
+                }
+                Ok(w)
+            }
+            Err(e) => {
+                self.need_cr = true;
+                self.port.flush_unread();
+                Err(Error::io(&format!("{} write", self.port.what), &e))
+            }
+        }
+    }
 }
 
 impl Sink for SlcanSink {
-    fn send(&mut self, frame: &CanFrame) -> Result<Sent> {
-        if let Role::Device { open } = &self.role {
-            if !open.load(Ordering::Acquire) {
-                return Ok(Sent::NotOpen);
+    fn send(&mut self, frame: &CanFrame) -> Result<Outcome> {
+        let line = slcan::encode(frame);
+        match self.role.clone() {
+            Role::Device(ch) => {
+                if !ch.open.load(Ordering::Acquire) {
+                    return Ok(Outcome::NOT_OPEN);
+                }
+                let port = self.port.clone();
+                let _g = port.lock();
+                let mut flushed = 0;
+                if self.port.unread_by_peer().is_some_and(|n| n > 0) {
+                    self.port.flush_unread();
+                    flushed = 1;
+                }
+                let written = if self.write_frame(line.as_bytes())? {
+                    Written::Yes
+                } else {
+                    Written::Dropped
+                };
+                Ok(Outcome { written, flushed })
+            }
+            Role::Host(acks) => {
+                let port = self.port.clone();
+                let _g = port.lock();
+                let mut flushed = 0;
+                if out_queue(self.port.fd.raw()).is_some_and(|n| n > 0) {
+                    // SAFETY: fd is an open tty.
+                    unsafe { libc::tcflush(self.port.fd.raw(), libc::TCOFLUSH) };
+                    self.need_cr = true;
+                    flushed = 1;
+                }
+                if acks.known.load(Ordering::Acquire) && !acks.replied.load(Ordering::Acquire) {
+                    // The adapter has not taken the last frame: do not queue
+                    // another behind it; ask it for a sign of life instead.
+                    if acks.held.fetch_add(1, Ordering::AcqRel) % REPROBE_TICKS == 0 {
+                        let _ = self.port.write_once(b"V\r");
+                    }
+                    return Ok(Outcome {
+                        written: Written::Dropped,
+                        flushed,
+                    });
+                }
+                acks.replied.store(false, Ordering::Release);
+                acks.held.store(0, Ordering::Release);
+                let written = if self.write_frame(line.as_bytes())? {
+                    acks.wrote.store(true, Ordering::Release);
+                    Written::Yes
+                } else {
+                    Written::Dropped
+                };
+                Ok(Outcome { written, flushed })
             }
         }
-        let line = slcan::encode(frame);
-        self.port
-            .write_line(line.as_bytes(), WRITE_BUDGET_MS)
-            .map_err(|e| Error::io(&format!("{} write", self.port.what), &e))?;
-        Ok(Sent::Yes)
     }
 
     fn close(&mut self) {
         match &self.role {
-            Role::Host => {
-                let _ = self.port.write_line(b"C\r", 20);
+            Role::Host(_) => {
+                let _g = self.port.lock();
+                let _ = self
+                    .port
+                    .write_once(if self.need_cr { b"\rC\r" } else { b"C\r" });
             }
             // Closing the master discards what the peer has not read yet:
-            // give a slow reader a bounded time to take the last (safe) frames.
-            // A peer that closed the channel (`C`) reads nothing more.
-            Role::Device { open } => {
-                if open.load(Ordering::Acquire) {
+            // give a slow reader a bounded time to take the last (safe) frame.
+            Role::Device(ch) => {
+                if ch.open.load(Ordering::Acquire) {
                     self.port.drain(DRAIN_BUDGET);
                 }
             }
@@ -117,33 +271,73 @@ impl Sink for SlcanSink {
 struct SlcanSource {
     port: Arc<Port>,
     role: Role,
+    health: Arc<Health>,
     dec: slcan::Decoder,
     pending: VecDeque<RxItem>,
 }
 
 impl SlcanSource {
+    /// Reply to the peer without ever waiting: only while it reads.
+    fn reply(&self, bytes: &[u8]) {
+        let _g = self.port.lock();
+        let room = self
+            .port
+            .unread_by_peer()
+            .is_some_and(|n| n + bytes.len() <= REPLY_ROOM);
+        let ok = room && matches!(self.port.write_once(bytes), Ok(true));
+        if !ok {
+            self.health.replies_dropped.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
     fn handle(&mut self, ev: Event) {
         match (ev, &self.role) {
-            (Event::Frame(f), _) => self.pending.push_back(RxItem::Frame(f)),
-            (Event::Malformed, _) => self.pending.push_back(RxItem::Malformed),
-            (Event::Bell, Role::Host) => self.pending.push_back(RxItem::BusError),
-            (Event::Command(c), Role::Device { open }) => {
-                let reply: &[u8] = match c {
-                    b'O' | b'L' => {
-                        open.store(true, Ordering::Release);
-                        b"\r"
-                    }
-                    b'C' => {
-                        open.store(false, Ordering::Release);
-                        b"\r"
-                    }
-                    b'V' => b"V1013\r",
-                    b'N' => b"NCB01\r",
-                    b'F' => b"F00\r",
-                    _ => b"\r",
-                };
-                let _ = self.port.write_line(reply, WRITE_BUDGET_MS);
+            (Event::Frame(f), Role::Host(_)) => self.pending.push_back(RxItem::Frame(f)),
+            (Event::Frame(f), Role::Device(ch)) => {
+                // A closed or listen-only channel does not transmit (Lawicel: BEL).
+                if ch.open.load(Ordering::Acquire) && !ch.listen_only.load(Ordering::Acquire) {
+                    self.pending.push_back(RxItem::Frame(f));
+                } else {
+                    self.reply(b"\x07");
+                }
             }
+            (Event::Malformed, Role::Device(_)) => {
+                self.pending.push_back(RxItem::Malformed);
+                self.reply(b"\x07");
+            }
+            (Event::Malformed, Role::Host(_)) => self.pending.push_back(RxItem::Malformed),
+            (Event::Command(line), Role::Device(ch)) => {
+                let reply: &[u8] = match parse_command(line.as_bytes()) {
+                    Some(Cmd::Open) => {
+                        ch.listen_only.store(false, Ordering::Release);
+                        ch.open.store(true, Ordering::Release);
+                        b"\r"
+                    }
+                    Some(Cmd::Listen) => {
+                        ch.listen_only.store(true, Ordering::Release);
+                        ch.open.store(true, Ordering::Release);
+                        b"\r"
+                    }
+                    Some(Cmd::Close) => {
+                        ch.open.store(false, Ordering::Release);
+                        b"\r"
+                    }
+                    Some(Cmd::Version) => b"V1013\r",
+                    Some(Cmd::Serial) => b"NCB01\r",
+                    Some(Cmd::Flags) => b"F00\r",
+                    Some(Cmd::Setting) => b"\r",
+                    None => {
+                        self.pending.push_back(RxItem::Malformed);
+                        b"\x07"
+                    }
+                };
+                self.reply(reply);
+            }
+            (Event::Bell, Role::Host(acks)) => {
+                self.pending.push_back(RxItem::BusError);
+                note_reply(acks);
+            }
+            (Event::TxAck | Event::Ok | Event::Command(_), Role::Host(acks)) => note_reply(acks),
             _ => {}
         }
     }
@@ -153,12 +347,19 @@ impl SlcanSource {
     }
 }
 
+fn note_reply(acks: &Acks) {
+    if acks.wrote.load(Ordering::Acquire) {
+        acks.known.store(true, Ordering::Release);
+    }
+    acks.replied.store(true, Ordering::Release);
+}
+
 impl Source for SlcanSource {
     fn recv(&mut self, timeout_ms: i32) -> Result<Option<RxItem>> {
         if let Some(x) = self.pending.pop_front() {
             return Ok(Some(x));
         }
-        let is_pty = matches!(self.role, Role::Device { .. });
+        let is_pty = matches!(self.role, Role::Device(_));
         let rev = self
             .port
             .fd
@@ -206,7 +407,8 @@ impl Source for SlcanSource {
 }
 
 fn cstring(path: &str) -> Result<CString> {
-    CString::new(path).map_err(|_| Error::Config(format!("path {path:?} contains a NUL byte")))
+    CString::new(path)
+        .map_err(|_| Error::Config(format!("path {} contains a NUL byte", clip(path))))
 }
 
 /// Create a pseudo-terminal; the bridge plays an SLCAN adapter on its master.
@@ -246,26 +448,68 @@ pub fn open_pty() -> Result<Opened> {
         slave_keeper: Some(keeper),
         what: format!("slcan-pty {path}"),
     });
-    let role = Role::Device {
-        open: Arc::new(AtomicBool::new(false)),
-    };
+    let role = Role::Device(Arc::new(Channel::default()));
+    let health = Arc::new(Health::default());
     Ok(Opened {
         sink: Box::new(SlcanSink {
             port: port.clone(),
             role: role.clone(),
+            need_cr: false,
         }),
         source: Box::new(SlcanSource {
             port,
             role,
+            health: health.clone(),
             dec: slcan::Decoder::default(),
             pending: VecDeque::new(),
         }),
         pty_path: Some(path),
+        health,
     })
 }
 
-/// Open an SLCAN serial adapter at `baud`, set the CAN bit rate and open the channel.
+/// Read reply lines from the adapter until `want` returns true for one or
+/// `budget` passes; returns the matching line, `Err(what it saw)` if not.
+fn await_reply(
+    fd: &Fd,
+    dec: &mut slcan::Decoder,
+    budget: Duration,
+    mut want: impl FnMut(&Event) -> bool,
+) -> std::result::Result<Event, Vec<Event>> {
+    let end = Instant::now() + budget;
+    let mut seen = Vec::new();
+    loop {
+        let left = end.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            return Err(seen);
+        }
+        let ms = left.as_millis().clamp(1, 50) as i32;
+        if fd.poll(libc::POLLIN, ms).unwrap_or(0) & libc::POLLIN == 0 {
+            continue;
+        }
+        let mut buf = [0u8; 256];
+        let n = match fd.read(&mut buf) {
+            Ok(n) => n,
+            Err(_) => continue,
+        };
+        let mut found = None;
+        dec.feed(buf.get(..n).unwrap_or(&[]), |e| {
+            if found.is_none() && want(&e) {
+                found = Some(e);
+            } else if seen.len() < 16 {
+                seen.push(e);
+            }
+        });
+        if let Some(e) = found {
+            return Ok(e);
+        }
+    }
+}
+
+/// Open an SLCAN serial adapter at `baud`: close its channel, ask for its
+/// version (`V`, refused if silent), set the CAN bit rate and open the channel.
 pub fn open_serial(path: &str, baud: u32, bitrate: u32) -> Result<Opened> {
+    let shown = clip(path);
     let speed = baud_constant(baud)
         .ok_or_else(|| Error::Config(format!("unsupported serial speed {baud}")))?;
     let code = slcan_bitrate_code(bitrate).ok_or_else(|| {
@@ -281,34 +525,72 @@ pub fn open_serial(path: &str, baud: u32, bitrate: u32) -> Result<Opened> {
             libc::O_RDWR | libc::O_NOCTTY | libc::O_NONBLOCK | libc::O_CLOEXEC,
         )
     })
-    .map_err(|e| Error::io(&format!("cannot open SLCAN device {path}"), &e))?;
+    .map_err(|e| Error::io(&format!("cannot open SLCAN device {shown}"), &e))?;
     make_raw(&fd, Some(speed))
-        .map_err(|e| Error::io(&format!("{path} is not a usable tty"), &e))?;
+        .map_err(|e| Error::io(&format!("{shown} is not a usable tty"), &e))?;
     // SAFETY: fd is a tty.
     unsafe {
         libc::tcflush(fd.raw(), libc::TCIOFLUSH);
+    }
+    let mut dec = slcan::Decoder::default();
+    let send = |bytes: &[u8], step: &str| {
+        fd.write_all_within(bytes, 100)
+            .map_err(|e| Error::io(&format!("{shown}: sending {step}"), &e))
+    };
+    // A leading CR ends whatever half line an earlier user left behind.
+    send(b"\rC\r", "C")?;
+    std::thread::sleep(Duration::from_millis(20));
+    // SAFETY: fd is a tty; the replies to CR and C are not needed.
+    unsafe { libc::tcflush(fd.raw(), libc::TCIFLUSH) };
+    send(b"V\r", "V")?;
+    let is_version = |e: &Event| matches!(e, Event::Command(l) if l.as_bytes().first() == Some(&b'V') || l.as_bytes().first() == Some(&b'v'));
+    await_reply(&fd, &mut dec, HANDSHAKE, is_version).map_err(|_| {
+        Error::Transport(format!(
+            "{shown}: no reply to the version query V within {} ms; is an SLCAN adapter connected?",
+            HANDSHAKE.as_millis()
+        ))
+    })?;
+    for step in [format!("S{code}"), "O".to_string()] {
+        send(format!("{step}\r").as_bytes(), &step)?;
+        let answer = |e: &Event| matches!(e, Event::Ok | Event::Bell | Event::TxAck);
+        match await_reply(&fd, &mut dec, HANDSHAKE, answer) {
+            Ok(Event::Bell) => {
+                return Err(Error::Transport(format!(
+                    "{shown}: the adapter refused {step} (BEL)"
+                )))
+            }
+            Ok(_) => {}
+            Err(_) => {
+                return Err(Error::Transport(format!(
+                    "{shown}: no reply to {step} within {} ms",
+                    HANDSHAKE.as_millis()
+                )))
+            }
+        }
     }
     let port = Arc::new(Port {
         fd,
         write_lock: Mutex::new(()),
         slave_keeper: None,
-        what: format!("slcan {path}"),
+        what: format!("slcan {shown}"),
     });
-    let init = format!("C\rS{code}\rO\r");
-    port.write_line(init.as_bytes(), 200)
-        .map_err(|e| Error::io(&format!("{path}: sending C/S{code}/O"), &e))?;
+    let role = Role::Host(Arc::new(Acks::default()));
+    let health = Arc::new(Health::default());
     Ok(Opened {
         sink: Box::new(SlcanSink {
             port: port.clone(),
-            role: Role::Host,
+            role: role.clone(),
+            need_cr: false,
         }),
         source: Box::new(SlcanSource {
             port,
-            role: Role::Host,
-            dec: slcan::Decoder::default(),
+            role,
+            health: health.clone(),
+            dec,
             pending: VecDeque::new(),
         }),
         pty_path: None,
+        health,
     })
 }
 
@@ -332,6 +614,7 @@ mod tests {
             sink,
             mut source,
             pty_path,
+            ..
         } = open_pty().unwrap();
         let peer = open_slave(&pty_path.unwrap());
         peer.write(b"O\r").unwrap();
@@ -363,10 +646,11 @@ mod tests {
             mut sink,
             mut source,
             pty_path,
+            ..
         } = open_pty().unwrap();
         let peer = open_slave(&pty_path.unwrap());
         let f = CanFrame::new(0x101, false, &[1, 2, 3]).unwrap();
-        assert_eq!(sink.send(&f).unwrap(), Sent::NotOpen);
+        assert_eq!(sink.send(&f).unwrap(), Outcome::NOT_OPEN);
         peer.write(b"C\rS6\rO\rt2011AA\r").unwrap();
         let mut got = None;
         for _ in 0..50 {
@@ -381,24 +665,41 @@ mod tests {
         );
         // Three CR replies for C, S6, O.
         assert_eq!(read_until(&peer, 3), b"\r\r\r");
-        assert_eq!(sink.send(&f).unwrap(), Sent::Yes);
+        assert_eq!(sink.send(&f).unwrap(), Outcome::YES);
+        assert_eq!(read_until(&peer, 12), b"t1013010203\r");
+        // Garbage after C neither closes the channel nor goes unanswered.
+        peer.write(b"Cxyz\r").unwrap();
+        let _ = source.recv(20).unwrap();
+        assert_eq!(read_until(&peer, 1), b"\x07");
+        assert_eq!(sink.send(&f).unwrap(), Outcome::YES);
         assert_eq!(read_until(&peer, 12), b"t1013010203\r");
         peer.write(b"C\r").unwrap();
         for _ in 0..5 {
             let _ = source.recv(10).unwrap();
         }
-        assert_eq!(sink.send(&f).unwrap(), Sent::NotOpen);
+        assert_eq!(sink.send(&f).unwrap(), Outcome::NOT_OPEN);
     }
 
     #[test]
-    fn pty_close_waits_for_a_slow_peer_to_read_the_last_frames() {
+    fn unread_frames_are_flushed_before_the_next_one() {
+        let (mut sink, _source, peer) = opened_by_a_peer();
+        assert_eq!(read_until(&peer, 1), b"\r");
+        let a = CanFrame::new(0x101, false, &[1]).unwrap();
+        let b = CanFrame::new(0x101, false, &[2]).unwrap();
+        assert_eq!(sink.send(&a).unwrap(), Outcome::YES);
+        std::thread::sleep(Duration::from_millis(5));
+        let o = sink.send(&b).unwrap();
+        assert_eq!((o.written, o.flushed), (Written::Yes, 1));
+        assert_eq!(read_until(&peer, 8), b"t101102\r");
+    }
+
+    #[test]
+    fn pty_close_waits_for_a_slow_peer_to_read_the_last_frame() {
         let (mut sink, source, peer) = opened_by_a_peer();
         assert_eq!(read_until(&peer, 1), b"\r");
         let f = CanFrame::new(0x101, false, &[0; 8]).unwrap();
-        for _ in 0..3 {
-            assert_eq!(sink.send(&f).unwrap(), Sent::Yes);
-        }
-        // The peer reads only every 120 ms: its next read is after close().
+        assert_eq!(sink.send(&f).unwrap(), Outcome::YES);
+        // The peer reads only after 120 ms: after close() has begun.
         let reader = std::thread::spawn(move || {
             std::thread::sleep(Duration::from_millis(120));
             let mut out = vec![];
@@ -411,23 +712,19 @@ mod tests {
             }
             out
         });
-        let t0 = std::time::Instant::now();
+        let t0 = Instant::now();
         sink.close();
         drop(sink);
         drop(source); // the master closes here
         let waited = t0.elapsed();
         let got = reader.join().unwrap();
-        assert_eq!(
-            got,
-            b"t1018"
-                .iter()
-                .chain(&[b'0'; 16])
-                .chain(b"\r")
-                .copied()
-                .collect::<Vec<u8>>()
-                .repeat(3),
-            "waited {waited:?}"
-        );
+        let want: Vec<u8> = b"t1018"
+            .iter()
+            .chain(&[b'0'; 16])
+            .chain(b"\r")
+            .copied()
+            .collect();
+        assert_eq!(got, want, "waited {waited:?}");
         assert!(waited < Duration::from_millis(400), "waited {waited:?}");
     }
 
@@ -435,9 +732,8 @@ mod tests {
     fn pty_close_wait_is_bounded_without_a_reader() {
         let (mut sink, _source, peer) = opened_by_a_peer(); // the master stays open
         let f = CanFrame::new(0x101, false, &[0; 8]).unwrap();
-        assert_eq!(sink.send(&f).unwrap(), Sent::Yes);
-        // Nobody reads: close gives up after the bounded wait.
-        let t0 = std::time::Instant::now();
+        let _ = sink.send(&f).unwrap();
+        let t0 = Instant::now();
         sink.close();
         let waited = t0.elapsed();
         assert!(
@@ -447,9 +743,12 @@ mod tests {
         drop(peer);
     }
 
-    #[test]
-    fn serial_host_role_sends_init() {
-        // A pty stands in for the adapter: the bridge opens the slave as its serial port.
+    /// A pty master playing the adapter: answers V, acknowledges frames with
+    /// `z` while `ack` says so; returns every line it got.
+    fn adapter(
+        ack: Arc<AtomicBool>,
+        stop: Arc<AtomicBool>,
+    ) -> (String, std::thread::JoinHandle<Vec<Vec<u8>>>) {
         let m = Fd::new(unsafe { libc::posix_openpt(libc::O_RDWR | libc::O_NOCTTY) }).unwrap();
         unsafe {
             libc::grantpt(m.raw());
@@ -461,14 +760,96 @@ mod tests {
             .to_string_lossy()
             .into_owned();
         m.set_nonblocking().unwrap();
-        let Opened { mut sink, .. } = open_serial(&slave, 115_200, 500_000).unwrap();
-        assert_eq!(read_until(&m, 9), b"C\rS6\rO\r");
+        make_raw(&m, None).unwrap();
+        let h = std::thread::spawn(move || {
+            let mut lines = vec![];
+            let mut cur = vec![];
+            while !stop.load(Ordering::SeqCst) {
+                if !ack.load(Ordering::SeqCst) {
+                    std::thread::sleep(Duration::from_millis(2));
+                    continue;
+                }
+                if m.poll(libc::POLLIN, 10).unwrap_or(0) & libc::POLLIN == 0 {
+                    continue;
+                }
+                let mut b = [0u8; 256];
+                let Ok(n) = m.read(&mut b) else { continue };
+                for &c in &b[..n] {
+                    if c != b'\r' {
+                        cur.push(c);
+                        continue;
+                    }
+                    let reply: &[u8] = match cur.first() {
+                        Some(b't') => b"z\r",
+                        Some(b'V') => b"V1013\r",
+                        _ => b"\r",
+                    };
+                    let _ = m.write(reply);
+                    lines.push(std::mem::take(&mut cur));
+                }
+            }
+            lines
+        });
+        (slave, h)
+    }
+
+    #[test]
+    fn serial_host_role_handshakes_and_waits_for_acks() {
+        let ack = Arc::new(AtomicBool::new(true));
+        let stop = Arc::new(AtomicBool::new(false));
+        let (slave, h) = adapter(ack.clone(), stop.clone());
+        let Opened {
+            mut sink,
+            mut source,
+            ..
+        } = open_serial(&slave, 115_200, 500_000).unwrap();
         let f = CanFrame::new(0x7FF, false, &[]).unwrap();
-        assert_eq!(sink.send(&f).unwrap(), Sent::Yes);
-        assert_eq!(read_until(&m, 6), b"t7FF0\r");
+        let pump = |source: &mut Box<dyn Source>| {
+            for _ in 0..5 {
+                let _ = source.recv(5);
+            }
+        };
+        assert_eq!(sink.send(&f).unwrap(), Outcome::YES);
+        pump(&mut source);
+        assert_eq!(sink.send(&f).unwrap(), Outcome::YES);
+        pump(&mut source);
+        // The adapter stalls: no acknowledgement, so no new frame.
+        ack.store(false, Ordering::SeqCst);
+        std::thread::sleep(Duration::from_millis(20));
+        assert_eq!(sink.send(&f).unwrap(), Outcome::YES);
+        pump(&mut source);
+        assert_eq!(sink.send(&f).unwrap().written, Written::Dropped);
+        assert_eq!(sink.send(&f).unwrap().written, Written::Dropped);
+        ack.store(true, Ordering::SeqCst);
+        std::thread::sleep(Duration::from_millis(30));
+        pump(&mut source);
+        assert_eq!(sink.send(&f).unwrap(), Outcome::YES);
         sink.close();
-        assert_eq!(read_until(&m, 2), b"C\r");
+        std::thread::sleep(Duration::from_millis(30));
+        stop.store(true, Ordering::SeqCst);
+        let lines = h.join().unwrap();
+        let text: Vec<&[u8]> = lines.iter().map(|l| l.as_slice()).collect();
+        assert_eq!(&text[..5], [&b""[..], b"C", b"V", b"S6", b"O"]);
+        let frames = text.iter().filter(|l| l.starts_with(b"t")).count();
+        assert_eq!(frames, 4);
+        assert_eq!(text.last(), Some(&&b"C"[..]));
         assert!(open_serial(&slave, 115_200, 33_000).is_err());
         assert!(open_serial("/nonexistent/tty", 115_200, 500_000).is_err());
+    }
+
+    #[test]
+    fn a_silent_serial_device_is_refused() {
+        let ack = Arc::new(AtomicBool::new(false));
+        let stop = Arc::new(AtomicBool::new(false));
+        let (slave, h) = adapter(ack, stop.clone());
+        let t0 = Instant::now();
+        let e = open_serial(&slave, 115_200, 500_000).err().unwrap();
+        assert!(
+            e.to_string().contains("no reply to the version query"),
+            "{e}"
+        );
+        assert!(t0.elapsed() < Duration::from_secs(2));
+        stop.store(true, Ordering::SeqCst);
+        h.join().unwrap();
     }
 }

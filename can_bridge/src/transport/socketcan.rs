@@ -3,7 +3,7 @@
 //! with a timeout because `close` does not wake a blocked read.
 
 use super::fd::Fd;
-use super::{Opened, RxItem, Sent, Sink, Source};
+use super::{out_queue, Health, Opened, Outcome, RxItem, Sink, Source};
 use crate::error::{Error, Result};
 use crate::frame::CanFrame;
 use std::ffi::CString;
@@ -98,7 +98,13 @@ struct CanSink {
 }
 
 impl Sink for CanSink {
-    fn send(&mut self, frame: &CanFrame) -> Result<Sent> {
+    fn send(&mut self, frame: &CanFrame) -> Result<Outcome> {
+        // A frame still in the socket's queue a period after it was written
+        // (bus-off, lost arbitration, a stuck controller) is not joined by a
+        // newer one that would go out stale behind it: drop this one.
+        if out_queue(self.fd.raw()).is_some_and(|n| n > 0) {
+            return Ok(Outcome::DROPPED);
+        }
         let raw = to_raw(frame);
         let size = std::mem::size_of::<RawCanFrame>();
         // SAFETY: raw is a valid can_frame of `size` bytes.
@@ -119,7 +125,7 @@ impl Sink for CanSink {
             };
             return Err(Error::io(&format!("{}: {why}", self.what), &e));
         }
-        Ok(Sent::Yes)
+        Ok(Outcome::YES)
     }
 }
 
@@ -223,6 +229,7 @@ pub fn open(iface: &str) -> Result<Opened> {
         }),
         source: Box::new(CanSource { fd, what }),
         pty_path: None,
+        health: Arc::new(Health::default()),
     })
 }
 
