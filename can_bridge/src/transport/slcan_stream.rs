@@ -11,7 +11,11 @@
 //! the last tick (`FIONREAD` on the bridge's own slave handle; `TIOCOUTQ` on
 //! a Linux pty master always reads 0) are flushed (`tcflush(TCIFLUSH)` on
 //! the slave), so the peer never reads a frame older than one period
-//! (`test_f1_no_stale_frame_reaches_a_pty_peer_after_a_stall`). Replies to
+//! (`test_f1_no_stale_frame_reaches_a_pty_peer_after_a_stall`). Only whole
+//! lines are flushed: the bridge keeps the offsets of the lines it wrote, and
+//! while the peer is part-way through one (it reads byte by byte, as
+//! python-can's slcan does) nothing is flushed that tick, and no new frame is
+//! queued behind older lines (`unread_lines`). Replies to
 //! the peer's commands are written only while its unread input is below
 //! [`REPLY_ROOM`]; a peer flooding commands without reading the replies
 //! costs dropped replies (counted), never a wait of the transmit thread.
@@ -55,10 +59,37 @@ struct Port {
     /// only around one `ioctl` and one non-blocking `write`: the transmit
     /// thread never waits behind the receive thread for longer than that.
     write_lock: Mutex<()>,
+    /// Where the lines written since the last flush end (pty age rule: a
+    /// flush may only discard whole lines). Locked only under `write_lock`.
+    ledger: Mutex<Ledger>,
     /// For a pty: our own handle on the slave, so the master never sees a
     /// hang-up while no peer is connected; also how we see unread output.
     slave_keeper: Option<Fd>,
     what: String,
+}
+
+/// Byte offsets of the lines written to the pty since the last flush.
+#[derive(Debug, Default)]
+struct Ledger {
+    /// Bytes written since the last flush.
+    total: u64,
+    /// End offsets of the lines the peer may not have read completely yet.
+    ends: VecDeque<u64>,
+    /// The end of the last line the peer has read completely.
+    done: u64,
+}
+
+/// What the pty peer has left unread, in lines.
+#[derive(Debug, PartialEq, Eq)]
+enum Unread {
+    /// Nothing (or not a pty).
+    Nothing,
+    /// Only whole lines: flushing them cuts none.
+    WholeLines,
+    /// The peer has read part of a line and the rest of it is queued, with
+    /// (`true`) or without (`false`) further lines behind it. Flushing now
+    /// would cut that line, and the peer would glue its head to the next one.
+    MidLine(bool),
 }
 
 fn cut() -> io::Error {
@@ -74,7 +105,13 @@ impl Port {
     fn write_once(&self, bytes: &[u8]) -> io::Result<bool> {
         loop {
             match self.fd.write(bytes) {
-                Ok(n) if n == bytes.len() => return Ok(true),
+                Ok(n) if n == bytes.len() => {
+                    let mut l = self.ledger.lock().unwrap_or_else(|e| e.into_inner());
+                    l.total += n as u64;
+                    let end = l.total;
+                    l.ends.push_back(end);
+                    return Ok(true);
+                }
                 Ok(_) => return Err(cut()),
                 Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => return Ok(false),
@@ -102,7 +139,32 @@ impl Port {
         if let Some(k) = &self.slave_keeper {
             // SAFETY: k is an open tty descriptor.
             unsafe { libc::tcflush(k.raw(), libc::TCIFLUSH) };
+            *self.ledger.lock().unwrap_or_else(|e| e.into_inner()) = Ledger::default();
         }
+    }
+
+    /// What the pty peer has not read, in whole lines or not (call under the
+    /// write lock). The peer has consumed `total - unread` bytes; when that is
+    /// the end of a line, the unread bytes are whole lines.
+    fn unread_lines(&self) -> Unread {
+        let Some(n) = self.unread_by_peer() else {
+            return Unread::Nothing;
+        };
+        let mut l = self.ledger.lock().unwrap_or_else(|e| e.into_inner());
+        if n == 0 {
+            *l = Ledger::default();
+            return Unread::Nothing;
+        }
+        let consumed = l.total.saturating_sub(n as u64);
+        while let Some(&e) = l.ends.front().filter(|&&e| e <= consumed) {
+            l.done = e;
+            l.ends.pop_front();
+        }
+        if consumed == l.done {
+            return Unread::WholeLines;
+        }
+        let rest = l.ends.front().map_or(0, |&e| e - consumed);
+        Unread::MidLine(n as u64 > rest)
     }
 
     /// Wait (at most `budget`) until the peer has read everything written to
@@ -204,9 +266,21 @@ impl Sink for SlcanSink {
                 let port = self.port.clone();
                 let _g = port.lock();
                 let mut flushed = 0;
-                if self.port.unread_by_peer().is_some_and(|n| n > 0) {
-                    self.port.flush_unread();
-                    flushed = 1;
+                match self.port.unread_lines() {
+                    Unread::Nothing => {}
+                    Unread::WholeLines => {
+                        self.port.flush_unread();
+                        flushed = 1;
+                    }
+                    // the peer is reading a line now: never cut it; the new
+                    // line queues behind it, unless older lines wait there too
+                    Unread::MidLine(false) => {}
+                    Unread::MidLine(true) => {
+                        return Ok(Outcome {
+                            written: Written::Dropped,
+                            flushed,
+                        })
+                    }
                 }
                 let written = if self.write_frame(line.as_bytes())? {
                     Written::Yes
@@ -445,6 +519,7 @@ pub fn open_pty() -> Result<Opened> {
     let port = Arc::new(Port {
         fd: m,
         write_lock: Mutex::new(()),
+        ledger: Mutex::new(Ledger::default()),
         slave_keeper: Some(keeper),
         what: format!("slcan-pty {path}"),
     });
@@ -571,6 +646,7 @@ pub fn open_serial(path: &str, baud: u32, bitrate: u32) -> Result<Opened> {
     let port = Arc::new(Port {
         fd,
         write_lock: Mutex::new(()),
+        ledger: Mutex::new(Ledger::default()),
         slave_keeper: None,
         what: format!("slcan {shown}"),
     });
@@ -691,6 +767,45 @@ mod tests {
         let o = sink.send(&b).unwrap();
         assert_eq!((o.written, o.flushed), (Written::Yes, 1));
         assert_eq!(read_until(&peer, 8), b"t101102\r");
+    }
+
+    /// Read exactly `n` bytes (or what arrives within about 2 s), never more.
+    fn read_n(fd: &Fd, n: usize) -> Vec<u8> {
+        let mut out = vec![];
+        for _ in 0..100 {
+            if out.len() >= n {
+                break;
+            }
+            if fd.poll(libc::POLLIN, 20).unwrap() & libc::POLLIN != 0 {
+                let mut b = [0u8; 256];
+                if let Ok(k) = fd.read(&mut b[..n - out.len()]) {
+                    out.extend_from_slice(&b[..k]);
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn a_line_the_peer_is_part_way_through_is_never_cut() {
+        let (mut sink, _source, peer) = opened_by_a_peer();
+        assert_eq!(read_until(&peer, 1), b"\r");
+        let a = CanFrame::new(0x101, false, &[1]).unwrap();
+        let b = CanFrame::new(0x101, false, &[2]).unwrap();
+        let c = CanFrame::new(0x101, false, &[3]).unwrap();
+        assert_eq!(sink.send(&a).unwrap(), Outcome::YES);
+        std::thread::sleep(Duration::from_millis(5));
+        assert_eq!(read_n(&peer, 3), b"t10"); // the peer is inside line a
+        let o = sink.send(&b).unwrap(); // only the rest of a is queued: b goes behind it
+        assert_eq!((o.written, o.flushed), (Written::Yes, 0));
+        std::thread::sleep(Duration::from_millis(5));
+        // rest of a and b queued behind it: c is neither glued nor may a be cut
+        let o = sink.send(&c).unwrap();
+        assert_eq!((o.written, o.flushed), (Written::Dropped, 0));
+        assert_eq!(read_n(&peer, 13), b"1101\rt101102\r");
+        // the peer read everything to a line's end: the next frame goes out alone
+        assert_eq!(sink.send(&c).unwrap(), Outcome::YES);
+        assert_eq!(read_until(&peer, 8), b"t101103\r");
     }
 
     #[test]
