@@ -7,12 +7,12 @@ is set; flags already present are left as they are):
   ``--xla_cpu_enable_concurrency_optimized_scheduler=false``: an early
   mitigation of a deadlock of batched XLA:CPU programs on small (2-core)
   machines. The deadlock's cause was later found in XLA:CPU's batched LAPACK
-  kernels, which the solvers do not call under ``vmap`` (README, "Known issues").
+  kernels, which the solvers do not call under ``vmap`` (docs/known-issues.md).
 * with jaxlib 0.10.x only (the flag is experimental; an unknown flag aborts
   XLA), ``--xla_cpu_experimental_ynn_fusion_type=``: no YNNPACK fusions. On
   this package's small matrices YNNPACK's per-call overhead dominated:
   without it a batched Local Explicit iteration took 1.1 instead of 3.8 us per
-  case and batched throughput rose 1.6x to 1.8x (README, "Speed").
+  case and batched throughput rose 1.6x to 1.8x (docs/known-issues.md).
 * with jaxlib 0.10.x only,
   ``--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1000000``:
   XLA:CPU compiles a ``while_loop`` whose accessed bytes are under this limit

@@ -12,7 +12,7 @@ its own share). On CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=N``
 Chunks of 16 to 64 ran 2.5x faster than one ``vmap`` of 1,024 drives on one
 core (the cruise-control benchmark, ``bench/bench_local_explicit.py``).
 
-Deadlock (README, "Known issues"): XLA:CPU's batched LAPACK kernels
+Deadlock (docs/known-issues.md): XLA:CPU's batched LAPACK kernels
 (Cholesky, triangular solve, LU, eigh) split their batch into tasks on the
 intra-op thread pool they themselves run on and block until those finish.
 With two CPU devices on two cores both pool threads can be such a kernel, and

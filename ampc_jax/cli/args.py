@@ -26,6 +26,7 @@ __all__ = [
     "fail",
     "flag_error",
     "output_dir",
+    "over_relaxation",
     "positive_finite",
     "progress_disabled",
     "warnings_as_lines",
@@ -74,6 +75,11 @@ def arg_type(check: Callable[[Any], Any], kind: type = float) -> Callable[[str],
 def positive_finite(value: float) -> None:
     if not (np.isfinite(value) and value > 0):
         raise ValueError(f"value: expected a positive finite number, got {value!r}")
+
+
+def over_relaxation(value: float) -> None:
+    if not (np.isfinite(value) and 0.0 < value < 2.0):
+        raise ValueError(f"relaxation: expected a value in (0, 2), got {value!r}")
 
 
 def at_least_one(value: int) -> None:

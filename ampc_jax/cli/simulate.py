@@ -23,6 +23,7 @@ from .args import (
     fail,
     flag_error,
     output_dir,
+    over_relaxation,
     positive_finite,
     progress_disabled,
 )
@@ -215,7 +216,8 @@ def _parse_floats(flag: str, text: str | None) -> float | tuple[float, ...] | No
         vals = tuple(float(x) for x in text.split(","))
     except ValueError:
         raise ValueError(
-            f"{flag} {text}: expected a number or comma-separated numbers (one per objective)"
+            f"{flag}: expected a number or comma-separated numbers (one per objective), "
+            f"got {text!r}"
         ) from None
     return vals[0] if len(vals) == 1 else vals
 
@@ -354,7 +356,7 @@ def add_simulate_commands(sub: Any) -> None:
     )
     p.add_argument(
         "--relaxation",
-        type=float,  # SimConfig checks (0, 2)
+        type=arg_type(over_relaxation),
         default=None,
         help="ADMM over-relaxation in (0, 2) for Local Explicit and the integrated MPC; "
         "1 is the paper's iteration (default: the example's tuned value, 1.5)",

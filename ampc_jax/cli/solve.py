@@ -11,7 +11,15 @@ from typing import Any
 
 import numpy as np
 
-from .args import arg_type, at_least_one, fail, flag_error, positive_finite, warnings_as_lines
+from .args import (
+    arg_type,
+    at_least_one,
+    fail,
+    flag_error,
+    over_relaxation,
+    positive_finite,
+    warnings_as_lines,
+)
 
 __all__ = ["add_solve_command", "cmd_solve"]
 
@@ -120,23 +128,30 @@ def _timed(fn: Any, *args: Any, repeats: int = 7) -> tuple[Any, float]:
     return res, float(np.median(times))
 
 
-def _ignored(args: argparse.Namespace) -> list[str]:
-    """The flags given that the chosen solver does not use."""
-    pairs: list[tuple[str, bool]] = []
+def _ignored(args: argparse.Namespace) -> list[tuple[str, list[str]]]:
+    """(cause, the flags given that it makes unused), one entry per cause."""
+    out: list[tuple[str, list[str]]] = []
     if args.formulation == "local_explicit" and args.solver is not None:
-        pairs.append(("--solver", True))
-    if args.formulation == "integrated" and args.solver in (None, "clarabel", "osqp"):
-        pairs += [
-            ("--rho", args.rho is not None),
-            ("--rho-scale", args.rho_scale is not None),
-            ("--relaxation", args.relaxation is not None),
-            ("--anderson", args.anderson is not None),
-            ("--max-iter", args.max_iter is not None),
-            ("--float32", args.float32),
+        out.append(("--formulation local_explicit", ["--solver"]))
+    reference = args.formulation == "integrated" and args.solver in (None, "clarabel", "osqp")
+    if reference:
+        given = [
+            flag
+            for flag, on in (
+                ("--rho", args.rho is not None),
+                ("--rho-scale", args.rho_scale is not None),
+                ("--relaxation", args.relaxation is not None),
+                ("--anderson", args.anderson is not None),
+                ("--max-iter", args.max_iter is not None),
+                ("--float32", args.float32),
+            )
+            if on
         ]
-    if args.rho is not None and args.rho_scale is not None:
-        pairs.append(("--rho-scale", True))  # a given rho is used as it is
-    return [flag for flag, given in pairs if given]
+        if given:
+            out.append((f"--solver {args.solver or 'clarabel'}", given))
+    elif args.rho is not None and args.rho_scale is not None:
+        out.append(("--rho VALUE (used as it is)", ["--rho-scale"]))
+    return out
 
 
 def cmd_solve(args: argparse.Namespace) -> int:
@@ -156,14 +171,8 @@ def cmd_solve(args: argparse.Namespace) -> int:
     if not path.exists():
         shipped = ", ".join(sorted(x.stem for x in EXAMPLES.glob("*.json")))
         return fail(f"{args.problem}: no such problem file, nor a shipped example ({shipped})")
-    ignored = _ignored(args)
-    if ignored:
-        who = (
-            "--formulation local_explicit"
-            if "--solver" in ignored and args.formulation == "local_explicit"
-            else f"--solver {args.solver or 'clarabel'}"
-        )
-        print(f"ampc: {', '.join(ignored)} ignored by {who}", file=sys.stderr)
+    for cause, flags in _ignored(args):
+        print(f"ampc: {', '.join(flags)} ignored by {cause}", file=sys.stderr)
     max_iter = MAX_ITER_DEFAULT if args.max_iter is None else args.max_iter
     scales = (1.0,) if args.rho_scale is None else args.rho_scale
     relaxation = 1.0 if args.relaxation is None else args.relaxation
@@ -200,8 +209,9 @@ def cmd_solve(args: argparse.Namespace) -> int:
                     tol_dual=tol,
                     dtype=dtype,
                 )
-            except ValueError as e:
-                return fail(flag_error(e, _FLAGS))
+            except ValueError as e:  # rho comes from --rho, or --rho-scale when auto
+                rho_flag = "--rho" if args.rho is not None else "--rho-scale"
+                return fail(flag_error(e, {**_FLAGS, "rho": rho_flag}))
             if args.rho is None:
                 check = problem.data(_check_dtype(args))
                 if kind is LocalExplicit:
@@ -415,7 +425,7 @@ def add_solve_command(sub: Any) -> None:
     )
     p.add_argument(
         "--relaxation",
-        type=float,
+        type=arg_type(over_relaxation),
         default=None,
         help="ADMM over-relaxation alpha in (0, 2); 1 is the paper's iteration (default: 1)",
     )

@@ -6,7 +6,7 @@ its metrics and its timing replay (section "Experimental Studies").
 * :mod:`~.controller` -- :class:`Controller` (``init`` / ``step``), the piece a
   runtime or a replay calls unchanged;
 * :mod:`~.shadow` -- the integrated MPC in shadow (e_sub);
-* :mod:`~.simulate` -- the scan over control periods, :func:`simulate`;
+* :mod:`~.loop` -- the scan over control periods, :func:`simulate`;
 * :mod:`~.metrics` -- :class:`SimResult` (e_sub, iterations, tracking, warnings);
 * :mod:`~.timing` -- eq.t_ratio by replay.
 """
@@ -26,9 +26,9 @@ from .config import (
     with_settings,
 )
 from .controller import Controller, ControllerState, DriverInputs, StepInfo
+from .loop import SimLog, Simulator, run_closed_loop, simulate, simulate_batch
 from .metrics import SimResult
 from .shadow import IntegratedShadow
-from .simulate import SimLog, Simulator, run_closed_loop, simulate, simulate_batch
 from .timing import replay_timing
 
 __all__ = [

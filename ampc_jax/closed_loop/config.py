@@ -6,7 +6,7 @@ objectives, solver options, settings of the example, vehicle and driver). It
 splits into
 
 * the static part, :meth:`SimConfig.simulator` -- a hashable
-  :class:`~ampc_jax.closed_loop.simulate.Simulator` of the controller and
+  :class:`~ampc_jax.closed_loop.loop.Simulator` of the controller and
   shadow's static options (iteration caps, Anderson memory, warm start,
   horizon): what a compiled closed loop is specialised on;
 * :meth:`SimConfig.loop_params` -- :class:`LoopParams`, a pytree of arrays:
@@ -27,7 +27,7 @@ import numpy as np
 from ..admm.acceleration import anderson_memory
 from ..admm.params import SolverParams
 from ..vehicle.examples import VehicleExample, example
-from ..vehicle.manoeuvres import SCENARIOS, DriverParams, ScenarioSpec
+from ..vehicle.manoeuvres import DriverParams, ScenarioSpec, scenario
 from ..vehicle.models import ExampleSettings
 from ..vehicle.params import CONTROL_DT, VehicleParams
 
@@ -350,9 +350,9 @@ class SimConfig:
         )
 
     def simulator(self) -> Any:
-        """The static closed loop (:class:`~ampc_jax.closed_loop.simulate.Simulator`)."""
+        """The static closed loop (:class:`~ampc_jax.closed_loop.loop.Simulator`)."""
+        from .loop import Simulator
         from .shadow import IntegratedShadow
-        from .simulate import Simulator
 
         ctrl = self.controller()
         shadow = None
@@ -398,7 +398,7 @@ class SimConfig:
 def config_for(spec: ScenarioSpec | str, **overrides: Any) -> SimConfig:
     """The :class:`SimConfig` of a registered scenario: its example, then ``overrides``
     (``None`` values are left out: the defaults stay)."""
-    spec = SCENARIOS[spec] if isinstance(spec, str) else spec
+    spec = scenario(spec)
     kw: dict[str, Any] = {"example": spec.example}
     kw.update({k: v for k, v in overrides.items() if v is not None})
     return SimConfig(**kw)

@@ -37,7 +37,6 @@ import numpy as np
 
 from ..vehicle.examples import VehicleExample
 from ..vehicle.manoeuvres import (
-    SCENARIOS,
     DriverParams,
     Scenario,
     ScenarioSpec,
@@ -46,6 +45,7 @@ from ..vehicle.manoeuvres import (
     initial_plant_state,
     path_y,
 )
+from ..vehicle.manoeuvres import scenario as scenario_spec
 from ..vehicle.models import yaw_rate_reference
 from ..vehicle.params import CONTROL_DT, VehicleParams
 from ..vehicle.plant import measure, plant_step
@@ -337,7 +337,7 @@ def simulate(
     dtype : float64 (default with x64) or float32.
     timing : replay the run for eq.t_ratio (:func:`replay_timing`).
     """
-    spec = SCENARIOS[scenario] if isinstance(scenario, str) else scenario
+    spec = scenario_spec(scenario)
     config = config or config_for(spec)
     if mu is not None and np.size(check_mu(mu)) != 1:
         raise ValueError(

@@ -14,7 +14,7 @@ import numpy as np
 from .config import SimConfig
 
 if TYPE_CHECKING:
-    from .simulate import SimLog
+    from .loop import SimLog
 
 __all__ = ["V_X_BACKWARDS", "SimResult"]
 

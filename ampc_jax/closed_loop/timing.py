@@ -19,7 +19,7 @@ from .config import SimConfig
 from .controller import OK_STATUS
 
 if TYPE_CHECKING:
-    from .simulate import SimLog
+    from .loop import SimLog
 
 __all__ = ["replay_timing"]
 

@@ -215,8 +215,9 @@ def yaw_error_comparison(results: Sequence[Any], labels: Sequence[str] | None = 
     _shade(ax, results[0])
     for res, lab in zip(results, labels, strict=True):
         e = res.log.yaw_rate - res.log.yaw_ref
-        rms = float(np.sqrt(np.mean(e[res.focus_mask] ** 2)))
-        ax.plot(res.log.t, e, lw=1.2, label=f"{lab} (rms focus {rms:.4f} rad/s)")
+        fm = res.focus_mask
+        rms = f"{float(np.sqrt(np.mean(e[fm] ** 2))):.4f}" if fm.any() else "n/a"
+        ax.plot(res.log.t, e, lw=1.2, label=f"{lab} (rms focus {rms} rad/s)")
     ax.axhline(0, color="k", lw=0.6)
     ax.set_xlabel("t (s)")
     ax.set_ylabel("yaw-rate error (rad/s)")

@@ -64,6 +64,7 @@ __all__ = [
     "path_y",
     "path_slope",
     "register_scenario",
+    "scenario",
     "single_lane_change",
     "stack_scenarios",
     "straight",
@@ -305,6 +306,15 @@ SCENARIOS: dict[str, ScenarioSpec] = {
     s.name: s for s in (_cruise_lane_change(), _stability_launch_brake(), _stability_dlc())
 }
 """Registry: name -> ScenarioSpec (:func:`register_scenario` adds one)."""
+
+
+def scenario(name: str | ScenarioSpec) -> ScenarioSpec:
+    """The registered scenario ``name`` (ValueError naming ``scenario`` otherwise)."""
+    if isinstance(name, ScenarioSpec):
+        return name
+    if name not in SCENARIOS:
+        raise ValueError(f"scenario: expected one of {sorted(SCENARIOS)}, got {name!r}")
+    return SCENARIOS[name]
 
 
 def register_scenario(spec: ScenarioSpec) -> ScenarioSpec:

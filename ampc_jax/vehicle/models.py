@@ -13,7 +13,7 @@ vmappable, keeping the measurement's dtype). The examples themselves are
 Deviations from the printed paper
 ---------------------------------
 Each item refers to ``/work/shared/paper/NOTES.md``; ``docs/vehicle.md`` gives
-the reasoning and ``tests/test_vehicle.py`` pins every choice.
+the reasoning and ``tests/vehicle/`` pins every choice.
 
 1. (NOTES 1) ``C_LST = [1, 0, 0]`` and ``C_YRT = [0, 0, 1]``: the printed
    eq.CC_objective swaps them.  Always corrected (no literal reading exists:
@@ -94,7 +94,7 @@ class ExampleSettings:
     the fields in ``STATIC`` (``horizon``, a size; ``dt``, the prediction step;
     ``literal``, a model choice) are static, every other field is an array leaf,
     so the weights and bounds are arguments of a compiled closed loop (changed
-    without recompiling, vmapped over, differentiated). Subclasses list their
+    without recompiling, vmapped over, differentiated in forward mode). Subclasses list their
     fields' kinds in ``WEIGHTS`` (Q_j >= 0), ``INPUT_WEIGHTS`` (R_(i) > 0) and
     ``BOUNDS`` (Nm >= 0).
     """

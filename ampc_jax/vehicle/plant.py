@@ -47,7 +47,7 @@ kappa: ``F_x,i+`` above (the force the wheel reacted against) and
 ``|F_i| <= mu F_z,i`` that the tyre model itself satisfies.  Without this the
 body would see the wheels one step late, an O(h) error multiplied by the slip
 stiffness.  The result converges at first order in ``h`` with small
-constants (tests/test_plant.py compares the default step with a 20x finer one
+constants (tests/vehicle/test_plant.py compares the default step with a 20x finer one
 through wheel spin and lock-up).  Brake torque (negative torque) is regularised
 so it holds a wheel at standstill instead of spinning it backwards:
 ``T_eff = T clip(omega / omega_eps, -1, 1)`` for ``T < 0``, also treated
