@@ -19,6 +19,33 @@ if _WORKER.startswith("gw") and hasattr(os, "sched_setaffinity"):
     if int(_WORKER[2:]) < len(_cpus) and _n_workers <= len(_cpus):
         os.sched_setaffinity(0, {_cpus[int(_WORKER[2:])]})
 
+# One persistent XLA compilation cache for the whole run, shared by the xdist
+# workers and the subprocesses the tests start (CLI, bench scripts, notebook):
+# many tests compile the same control steps and closed loops, and a compile
+# (2 to 6 s) costs more than most tests' runs. A fresh directory per run unless
+# AMPC_TEST_JAX_CACHE names one (the results do not depend on it).
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    import tempfile
+
+    _cache = os.environ.get("AMPC_TEST_JAX_CACHE") or os.path.join(
+        tempfile.gettempdir(),
+        f"ampc-jax-test-cache-{os.environ.get('PYTEST_XDIST_TESTRUNUID', os.getpid())}",
+    )
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = _cache
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
+
+# The tests check results, not speed: XLA compiles their programs without LLVM's
+# optimisation passes, which halves a compile (2 s -> 1 s for a control step)
+# and keeps IEEE semantics (no fast-math either way). Benchmarks (bench/) and
+# the timing figures are measured with the default level.
+# AMPC_TEST_XLA_OPT=1 keeps the default level.
+if os.environ.get("AMPC_TEST_XLA_OPT") != "1" and "optimization_level" not in os.environ.get(
+    "XLA_FLAGS", ""
+):
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0"
+    ).strip()
+
 import jax  # noqa: E402
 
 import ampc_jax  # noqa: F401, E402  (sets XLA_FLAGS before the CPU backend starts)

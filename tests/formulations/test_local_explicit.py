@@ -18,6 +18,9 @@ pytestmark = pytest.mark.timeout(300)
 
 TIGHT = dict(max_iter=30000)  # static options of the tight solves
 TIGHT_TOL = dict(tol_primal=1e-14, tol_dual=1e-14)  # and their parameters
+# Variants that repeat a faster one's check on another topology or path run with
+# `pytest -m slow`, so that the default suite stays within CI's time budget.
+SLOW = pytest.mark.slow
 ATOL = 1e-6  # absolute floor of the "1e-3 relative" comparison (inputs near zero)
 
 
@@ -72,7 +75,7 @@ def all_rows_layout(monkeypatch):
     L.padded_layout.cache_clear()
 
 
-@pytest.mark.parametrize("n_obj,shared", [(2, "chain"), (3, "both")])
+@pytest.mark.parametrize("n_obj,shared", [(2, "chain"), pytest.param(3, "both", marks=SLOW)])
 def test_all_rows_layout_matches_integrated_optimum(n_obj, shared, all_rows_layout):
     from ampc_jax.admm.layout import padded_layout as _layout
 
@@ -106,7 +109,7 @@ def test_row_layouts_give_the_same_iterates(monkeypatch):
     np.testing.assert_allclose(all_rows.state.Z, compact.state.Z, rtol=1e-9, atol=1e-9)
 
 
-@pytest.mark.parametrize("n_obj,shared", [(2, "all"), (3, "both")])
+@pytest.mark.parametrize("n_obj,shared", [pytest.param(2, "all", marks=SLOW), (3, "both")])
 def test_formed_woodbury_inverse_matches_integrated_optimum(n_obj, shared):
     """Woodbury K^-1 formed once per step instead of applied in factored form."""
     problems = [random_problem(seed, n_obj, shared=shared) for seed in range(6)]
@@ -115,7 +118,7 @@ def test_formed_woodbury_inverse_matches_integrated_optimum(n_obj, shared):
     compare_batch(problems, solver)
 
 
-@pytest.mark.parametrize("n_obj,shared", [(2, "all"), (3, "both")])
+@pytest.mark.parametrize("n_obj,shared", [(2, "all"), pytest.param(3, "both", marks=SLOW)])
 def test_dense_factorisation_matches_integrated_optimum(n_obj, shared):
     """The Cholesky path (taken when objectives have as many outputs as inputs)."""
     problems = [random_problem(seed, n_obj, shared=shared) for seed in range(6)]
@@ -314,7 +317,7 @@ def test_warm_start_shift_converges_to_same_and_saves_iterations():
     assert np.max(np.abs(np.asarray(again.u0) - np.asarray(stopped.u0))) > 1e-6
 
 
-@pytest.mark.parametrize("n_obj,shared", [(2, "all"), (3, "both")])
+@pytest.mark.parametrize("n_obj,shared", [(2, "all"), pytest.param(3, "both", marks=SLOW)])
 def test_state_views_round_trip(n_obj, shared):
     """ADMMState is padded and objective-stacked; the per-objective views and
     state_of convert both ways, and the stacked shift is the per-objective one."""
@@ -376,7 +379,8 @@ def test_warm_state_shapes_are_checked():
 
 
 @pytest.mark.parametrize(
-    "kkt,anderson", [("woodbury", 0), ("woodbury_factored", 0), ("woodbury_factored", 3)]
+    "kkt,anderson",
+    [pytest.param("woodbury", 0, marks=SLOW), ("woodbury_factored", 0), ("woodbury_factored", 3)],
 )
 def test_fixed_iterations_gradient_matches_finite_differences(kkt, anderson):
     """d/d(reference) and d/d(rho_j) (rho_method="given": rho_j itself as data)
@@ -394,16 +398,17 @@ def test_fixed_iterations_gradient_matches_finite_differences(kkt, anderson):
 
     rho = jnp.array([1.5, 3.0])
     g_ref, g_rho = jax.jit(jax.grad(f, argnums=(0, 1)))(0.1, rho)
+    fj = jax.jit(f)  # one compiled program for the four differences
     h = 1e-6
-    fd_ref = (f(0.1 + h, rho) - f(0.1 - h, rho)) / (2 * h)
+    fd_ref = (fj(0.1 + h, rho) - fj(0.1 - h, rho)) / (2 * h)
     np.testing.assert_allclose(g_ref, fd_ref, rtol=1e-5, atol=1e-9)
     e = jnp.array([1.0, 0.0])
-    fd_rho = (f(0.1, rho + h * e) - f(0.1, rho - h * e)) / (2 * h)
+    fd_rho = (fj(0.1, rho + h * e) - fj(0.1, rho - h * e)) / (2 * h)
     np.testing.assert_allclose(g_rho[0], fd_rho, rtol=1e-4, atol=1e-9)
     # forward mode too (jvp): the same directional derivatives
-    _, t_ref = jax.jvp(lambda r: f(r, rho), (0.1,), (1.0,))
+    _, t_ref = jax.jit(lambda r: jax.jvp(lambda x: f(x, rho), (r,), (1.0,)))(0.1)
     np.testing.assert_allclose(t_ref, fd_ref, rtol=1e-5, atol=1e-9)
-    _, t_rho = jax.jvp(lambda r: f(0.1, r), (rho,), (e,))
+    _, t_rho = jax.jit(lambda r: jax.jvp(lambda x: f(0.1, x), (r,), (e,)))(rho)
     np.testing.assert_allclose(t_rho, fd_rho, rtol=1e-4, atol=1e-9)
 
 
@@ -429,7 +434,8 @@ def test_gradient_wrt_Q_with_padded_outputs():
 
     g = jax.jit(jax.grad(f))(1.0)
     h = 1e-6
-    fd = (f(1.0 + h) - f(1.0 - h)) / (2 * h)
+    fj = jax.jit(f)
+    fd = (fj(1.0 + h) - fj(1.0 - h)) / (2 * h)
     assert np.isfinite(g)
     np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-9)
 
@@ -472,8 +478,11 @@ def test_agent_helper_split():
     np.testing.assert_allclose(parts["x"], solve_reference(p.topology, p.data()).u[0], atol=1e-6)
 
 
-@pytest.mark.parametrize("anderson", [1, 3])
-@pytest.mark.parametrize("n_obj,shared", [(2, "all"), (3, "both")])
+@pytest.mark.parametrize(
+    "anderson,n_obj,shared",
+    [(1, 2, "all"), (3, 3, "both"), pytest.param(3, 2, "all", marks=SLOW),
+     pytest.param(1, 3, "both", marks=SLOW)],
+)  # fmt: skip
 def test_anderson_keeps_the_optimum(anderson, n_obj, shared):
     problems = [random_problem(seed, n_obj, shared=shared) for seed in range(8)]
     solver = LocalExplicit(problems[0].topology, anderson=anderson, **TIGHT)

@@ -1,4 +1,5 @@
-"""Input validation of ``ampc simulate`` / ``ampc demo`` (ampc_jax.reporting); no simulation runs."""
+"""Input validation of ``ampc simulate`` / ``ampc demo`` (ampc_jax.cli.simulate,
+ampc_jax.cli.args); no simulation runs."""
 
 import subprocess
 import sys
@@ -6,7 +7,7 @@ import sys
 import pytest
 
 from ampc_jax.cli import build_parser, main
-from ampc_jax.reporting import _parse_settings
+from ampc_jax.cli.simulate import _parse_floats, _parse_settings
 from ampc_jax.vehicle import CruiseSettings, StabilitySettings
 
 pytestmark = pytest.mark.timeout(120)
@@ -22,7 +23,7 @@ BASE = ["simulate", "cruise_lane_change", "--quiet", "--no-timing"]
         ("--duration", "-1", "at least one control period"),
         ("--duration", "nan", "finite time"),
         ("--duration", "inf", "finite time"),
-        ("--duration", "two", "expected a number"),
+        ("--duration", "two", "expected a number, got 'two'"),
         ("--duration", "1e12", "at most 3600 s (72000 control steps) in one run"),
         ("--mu", "nan", "finite road friction in (0, 2]"),
         ("--mu", "-1", "(0, 2]"),
@@ -35,6 +36,8 @@ BASE = ["simulate", "cruise_lane_change", "--quiet", "--no-timing"]
         ("--tol-dual", "nan", "positive finite"),
         ("--repeats", "0", "integer >= 1"),
         ("--integrated-rho-scale", "0", "positive finite"),
+        ("--warm-shift", "2", "invalid choice: 2"),
+        ("--anderson", "4", "invalid choice: 4"),
     ],
 )
 def test_argparse_rejects_bad_numbers(capsys, tmp_path, flag, value, expected):
@@ -42,7 +45,10 @@ def test_argparse_rejects_bad_numbers(capsys, tmp_path, flag, value, expected):
         main([*BASE, flag, value, "--out", str(tmp_path / "x")])
     assert exc.value.code == 2
     err = capsys.readouterr().err
-    assert f"argument {flag}: " in err and expected in err, err
+    last = err.splitlines()[-1]
+    assert err.startswith("usage: ampc simulate")  # argparse errors print the usage first
+    assert last.startswith(f"ampc: error: {flag}: ") and expected in last, err
+    assert "argument " not in err and err.count(f"{flag}: ") == 1, err
     assert not (tmp_path / "x").exists()
 
 
@@ -53,13 +59,15 @@ def test_argparse_accepts_the_edges():
     )  # fmt: skip
     assert (args.duration, args.mu, args.max_iter, args.repeats) == (0.05, 2.0, 1, 1)
     assert (args.tol_primal, args.tol_dual, args.relaxation) == (1e-12, 3.0, 1.9)
+    assert args.out == "out" and args.formulation == "local_explicit"
+    assert build_parser().parse_args(["demo"]).out == "demo"
 
 
 @pytest.mark.parametrize(
     ("item", "expected"),
     [
         ("horizon=0", "--set horizon=0: expected an integer N_p >= 1"),
-        ("horizon=1.5", "'1.5' is not a valid int"),
+        ("horizon=1.5", "--set horizon=1.5: '1.5' is not a valid int"),
         ("dt=0", "--set dt=0: expected a positive prediction step"),
         ("dt=nan", "--set dt=nan: expected a finite number"),
         ("q_yrt=-5", "--set q_yrt=-5: expected a weight >= 0"),
@@ -67,14 +75,15 @@ def test_argparse_accepts_the_edges():
         ("r_fdb=0", "--set r_fdb=0: expected a weight > 0"),
         ("fdb_max=-1", "--set fdb_max=-1: expected a torque bound >= 0"),
         ("literal=maybe", "--set literal=maybe: expected true or false"),
-        ("q_vsc=1", "FIELD one of"),
+        ("q_vsc=1", "--set q_vsc=1: expected FIELD=VALUE with FIELD one of"),
+        ("horizon", "--set horizon: expected FIELD=VALUE"),
     ],
 )
 def test_cli_rejects_bad_settings(capsys, tmp_path, item, expected):
     code = main([*BASE, "--duration", "1", "--set", item, "--out", str(tmp_path / "x")])
     assert code == 2
     err = capsys.readouterr().err
-    assert err.startswith("ampc: error: ") and expected in err, err
+    assert err.startswith(f"ampc: error: {expected}"), err
     assert not (tmp_path / "x").exists()  # refused before anything ran or was written
 
 
@@ -86,8 +95,20 @@ def test_parse_settings_values():
         "literal": True,
     }
     assert _parse_settings(["literal=off", "fdb_max=0"], c) == {"literal": False, "fdb_max": 0.0}
+    assert _parse_settings([], c) == {}
     with pytest.raises(ValueError, match=r"^--set slip_des=1: expected a slip ratio in \[0, 1\)"):
         _parse_settings(["slip_des=1"], StabilitySettings())
+    # a field of the other example is named as unknown, with this example's fields
+    with pytest.raises(ValueError, match=r"^--set slip_des=0.1: expected FIELD=VALUE .*'q_lst'"):
+        _parse_settings(["slip_des=0.1"], c)
+
+
+def test_parse_floats():
+    assert _parse_floats("--rho-scale", None) is None
+    assert _parse_floats("--rho-scale", "0.5") == 0.5
+    assert _parse_floats("--rho-scale", "1,0.5") == (1.0, 0.5)
+    with pytest.raises(ValueError, match=r"^--rho-scale\b.*: expected a number or comma"):
+        _parse_floats("--rho-scale", "abc")
 
 
 def test_unwritable_output_directory_is_a_usage_error(capsys, tmp_path):
@@ -96,9 +117,16 @@ def test_unwritable_output_directory_is_a_usage_error(capsys, tmp_path):
     out = blocker / "sub"
     assert main([*BASE, "--duration", "1", "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert f"--out {out}: cannot create the output directory" in err, err
+    assert err.startswith(f"ampc: error: --out {out}: cannot create the output directory"), err
     assert main(["demo", "--quiet", "--out", str(out)]) == 2
     assert "cannot create the output directory" in capsys.readouterr().err
+
+
+def test_unknown_scenario_is_named(capsys, tmp_path):
+    assert main(["simulate", "cruise_lane", "--quiet", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("ampc: error: unknown scenario 'cruise_lane'; expected one of")
+    assert "cruise_lane_change" in err and not (tmp_path / "x").exists()
 
 
 @pytest.mark.timeout(180)
@@ -111,7 +139,9 @@ def test_bad_duration_exits_2_without_traceback(tmp_path):
     )
     assert r.returncode == 2, r.stderr
     assert "Traceback" not in r.stderr
-    assert "argument --duration: expected a finite time of at least one control period" in r.stderr
+    assert r.stderr.splitlines()[-1].startswith(
+        "ampc: error: --duration: expected a finite time of at least one control period"
+    )
 
 
 def test_progress_bars_only_on_a_terminal(monkeypatch):
@@ -119,14 +149,22 @@ def test_progress_bars_only_on_a_terminal(monkeypatch):
     debris in logs), and never with --quiet."""
     import io
 
-    from ampc_jax import reporting as R
+    from tqdm import tqdm
+
+    from ampc_jax.cli import simulate as S
+    from ampc_jax.cli.args import progress_disabled
+
+    assert progress_disabled(True) is True and progress_disabled(False) is None
 
     class Terminal(io.StringIO):
         def isatty(self):
             return True
 
     monkeypatch.setattr(sys, "stderr", Terminal())
-    assert not R._bar(3, quiet=False).disable
-    assert R._bar(3, quiet=True).disable
+    assert not tqdm(total=3, disable=progress_disabled(False)).disable
+    assert tqdm(total=3, disable=progress_disabled(True)).disable
+    assert not S._bar(3, quiet=False).disable  # the bar the commands draw
+    assert S._bar(3, quiet=True).disable
     monkeypatch.setattr(sys, "stderr", io.StringIO())
-    assert R._bar(3, quiet=False).disable
+    assert tqdm(total=3, disable=progress_disabled(False)).disable
+    assert S._bar(3, quiet=False).disable

@@ -1,4 +1,4 @@
-"""`ampc solve`: the JSON contract and the solver options."""
+"""`ampc solve` (ampc_jax.cli.solve): the JSON contract, the solver options, problem files."""
 
 import json
 
@@ -17,8 +17,35 @@ def run_json(capsys, *args):
     return json.loads(out.out)
 
 
-def test_solve_json_contract_and_rho_scale(capsys):
-    base = run_json(capsys, "--formulation", "local_explicit")
+def run_json_file(capsys, path, *args):
+    code = main(["solve", str(path), "--json", *args])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    return json.loads(out.out)
+
+
+def exit_code(args):
+    """main's return code, or argparse's exit status for a rejected option."""
+    try:
+        return main(args)
+    except SystemExit as e:
+        return e.code
+
+
+@pytest.fixture(scope="module")
+def base():
+    """The shipped example by Local Explicit at --tol 1e-8 (within 1e-4 Nm of
+    Clarabel): one run (one compilation) for the tests that compare against it."""
+    import contextlib
+    import io
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        assert main(["solve", "cruise_control", "--json", "--tol", "1e-8"]) == 0
+    return json.loads(out.getvalue())
+
+
+def test_solve_json_contract_and_rho_scale(capsys, base):
     for key in (
         "formulation",
         "u0",
@@ -30,47 +57,54 @@ def test_solve_json_contract_and_rho_scale(capsys):
         "dual_residual",
         "rho",
         "solve_time_s",
+        "compile_time_s",
+        "warm_state",
+        "constraint_violation",
     ):
         assert key in base
-    assert base["converged"]
-    scaled = run_json(capsys, "--rho-scale", "2,0.5", "--relaxation", "1.6")
+    assert base["formulation"] == "local_explicit" and base["converged"]
+    scaled = run_json(capsys, "--tol", "1e-8", "--rho-scale", "2,0.5", "--relaxation", "1.6")
     names = list(base["rho"])
     assert scaled["rho"][names[0]] == pytest.approx(2 * base["rho"][names[0]], rel=1e-9)
     assert scaled["rho"][names[1]] == pytest.approx(0.5 * base["rho"][names[1]], rel=1e-9)
     # same optimum either way (rho and relaxation only change the path)
     for agent, u0 in base["u0"].items():
         np.testing.assert_allclose(scaled["u0"][agent], u0, atol=5e-2)
-    accelerated = run_json(capsys, "--anderson", "3")
+    accelerated = run_json(capsys, "--tol", "1e-8", "--anderson", "3")
     assert accelerated["converged"] and accelerated["iterations"] < base["iterations"]
     for agent, u0 in base["u0"].items():
         np.testing.assert_allclose(accelerated["u0"][agent], u0, atol=5e-2)
 
 
-def exit_code(args):
-    """main's return code, or argparse's exit status for a rejected option."""
-    try:
-        return main(args)
-    except SystemExit as e:
-        return e.code
-
-
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["--rho-scale", "1,2,3"], "rho_scale"),
-        (["--rho-scale", "-1"], "positive"),
-        (["--relaxation", "2.5"], "relaxation"),
-        (["--anderson", "4"], "anderson"),
+        (
+            ["--rho-scale", "1,2,3"],
+            "ampc: error: --rho-scale: expected a float or 2 values (one per objective)",
+        ),
+        (["--rho-scale", "-1"], "ampc: error: --rho-scale: expected positive finite numbers"),
+        (["--rho-scale", "1,x"], "ampc: error: --rho-scale: expected comma-separated positive"),
+        (["--relaxation", "2.5"], "ampc: error: --relaxation: expected a value in (0, 2), got 2.5"),
+        (["--relaxation", "abc"], "ampc: error: --relaxation: expected a number, got 'abc'"),
+        (["--relaxation", "0"], "ampc: error: --relaxation: "),
+        (["--anderson", "4"], "ampc: error: --anderson: invalid choice: 4"),
+        (["--rho", "-2"], "ampc: error: --rho: expected a positive finite number, got '-2'"),
+        (["--rho", "nan"], "ampc: error: --rho: expected a positive finite number"),
+        (["--tol", "0"], "ampc: error: --tol: expected a positive finite number"),
+        (["--max-iter", "2.5"], "ampc: error: --max-iter: expected an integer, got '2.5'"),
     ],
 )
 def test_solve_rejects_bad_solver_options(capsys, args, message):
     assert exit_code(["solve", "cruise_control", *args]) == 2
-    assert message in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.splitlines()[-1].startswith(message), err
+    assert "argument " not in err  # argparse's "argument --x: --x: ..." is rewritten
 
 
-def test_warm_start_file_round_trip(capsys, tmp_path):
+def test_warm_start_file_round_trip(capsys, tmp_path, base):
     """--warm-start reads a previous --json output (per-objective U, Z, gamma)."""
-    cold = run_json(capsys, "--formulation", "local_explicit", "--tol", "1e-8")
+    cold = base  # --tol 1e-8
     ws = cold["warm_state"]
     assert len(ws["U"]) == len(ws["gamma"]) == len(cold["rho"])
     path = tmp_path / "first.json"
@@ -98,10 +132,23 @@ def test_warm_start_file_round_trip(capsys, tmp_path):
     path.write_text(json.dumps(bad))
     code = exit_code(["solve", "cruise_control", "--warm-start", str(path)])
     err = capsys.readouterr().err
-    assert code != 0 and "does not match this problem" in err and "one array per objective" in err
+    assert code == 2 and err.startswith(f"ampc: error: --warm-start {path}: "), err
+    assert "does not match this problem" in err and "one array per objective" in err
+    # a file that is no --json result
+    path.write_text(json.dumps({"u0": {}}))
+    assert main(["solve", "cruise_control", "--warm-start", str(path)]) == 2
+    assert "no 'warm_state' object" in capsys.readouterr().err
+    # a warm start applies to Local Explicit only
+    assert (
+        main(["solve", "cruise_control", "--formulation", "integrated", "--warm-start", str(path)])
+        == 2
+    )
+    assert "ampc: error: --warm-start: applies to --formulation local_explicit only" in (
+        capsys.readouterr().err
+    )
 
 
-def _problem_file(tmp_path, **changes):
+def _problem_file(tmp_path, name="problem.json", **changes):
     """A small problem (two objectives sharing agent b) written to a file."""
     d = {
         "horizon": 4,
@@ -118,15 +165,13 @@ def _problem_file(tmp_path, **changes):
         ],
     }
     d.update(changes)
-    path = tmp_path / "problem.json"
+    path = tmp_path / name
     path.write_text(json.dumps(d))
     return str(path)
 
 
-def test_integrated_solvers_agree_with_local_explicit(capsys):
-    le = run_json(
-        capsys, "--formulation", "local_explicit", "--tol", "1e-10", "--max-iter", "20000"
-    )
+def test_integrated_solvers_agree_with_local_explicit(capsys, base):
+    le = base  # --tol 1e-8: within 1e-4 Nm of the optimum
     for solver in ("clarabel", "osqp", "jax"):
         ref = run_json(
             capsys,
@@ -136,21 +181,39 @@ def test_integrated_solvers_agree_with_local_explicit(capsys):
             solver,
             "--tol",
             "1e-10",
-            "--max-iter",
-            "20000",
+            *(["--max-iter", "20000"] if solver == "jax" else []),
         )
         assert ref["status"] == "solved", solver
+        assert ref["formulation"] == "integrated" and "warm_state" not in ref
         for agent, u0 in le["u0"].items():
             np.testing.assert_allclose(ref["u0"][agent], u0, rtol=1e-3, atol=1e-4, err_msg=solver)
         if solver == "jax":
             assert list(ref["rho"]) == ["integrated"]
+        else:
+            assert ref["rho"] == {}
+
+
+def test_solver_defaults_to_clarabel_for_integrated(capsys):
+    """--solver's default is None: Clarabel for the integrated formulation, no note."""
+    out = run_json(capsys, "--formulation", "integrated")
+    assert out["status"] == "solved" and out["rho"] == {}
+    assert main(["solve", "cruise_control", "--formulation", "integrated"]) == 0
+    captured = capsys.readouterr()
+    assert "ignored" not in captured.err
+    assert captured.out.startswith("formulation  integrated")
 
 
 def test_given_rho_and_iteration_cap(capsys):
-    out = run_json(capsys, "--rho", "3.5", "--max-iter", "3")
+    code = main(["solve", "cruise_control", "--json", "--rho", "3.5", "--max-iter", "3"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    out = json.loads(captured.out)
     assert set(out["rho"].values()) == {3.5}
     assert out["iterations"] == 3 and out["status"] == "max_iter_reached"
     assert not out["converged"]
+    # the iteration cap is reported on stderr (u is still the projected last iterate)
+    assert "ampc: not converged: stopped at --max-iter 3" in captured.err
+    assert "ignored" not in captured.err
 
 
 def test_table_output(capsys):
@@ -158,6 +221,7 @@ def test_table_output(capsys):
     text = capsys.readouterr().out
     assert text.startswith("formulation  local_explicit")
     assert "status       solved after" in text and "first-step inputs U^(0)" in text
+    assert "\nrho          LST=" in text and "solve time " in text
     for agent in ("DTR", "RTV", "FDB"):
         assert f"\n{agent} " in text
 
@@ -173,6 +237,9 @@ def test_infeasible_problem_prints_no_inputs(capsys, tmp_path, solver):
     assert result["status"] == "infeasible"
     assert set(result["u0"].values()) == {None} and set(result["u"].values()) == {None}
     assert "no solution (infeasible)" in out.err
+    # the table says so instead of printing numbers
+    assert main(["solve", path, "--formulation", "integrated", "--solver", solver]) == 1
+    assert "no solution" in capsys.readouterr().out
 
 
 def test_local_explicit_on_an_infeasible_problem_prints_no_inputs(capsys, tmp_path):
@@ -191,23 +258,25 @@ def test_local_explicit_on_an_infeasible_problem_prints_no_inputs(capsys, tmp_pa
     # a feasible problem with an active general row, stopped a little early: its
     # violation is of the order a converged result may have (sqrt(tol)), so the
     # inputs are printed
-    row = _problem_file(tmp_path, constraints=[{"A": {"a": [[1.0]], "b": [[1.0]]}, "b": [0.3]}])
-    done = json.loads(_run_ok(capsys, row, "--tol", "1e-3"))
+    row = _problem_file(
+        tmp_path, "row.json", constraints=[{"A": {"a": [[1.0]], "b": [[1.0]]}, "b": [0.3]}]
+    )
+    done = run_json_file(capsys, row, "--tol", "1e-3")
     assert done["status"] == "solved"
     early = main(["solve", row, "--tol", "1e-3", "--max-iter", str(done["iterations"] - 1)])
     out = capsys.readouterr()
     assert early == 0 and "may be infeasible" not in out.err
 
 
-def test_cli_input_mistakes_are_named(capsys, tmp_path):
+def test_cli_input_mistakes_are_named(capsys, tmp_path, base):
     # a mistyped example name lists the shipped ones
     assert main(["solve", "cruise_contro"]) == 2
     assert "nor a shipped example (cruise_control" in capsys.readouterr().err
     # a non-finite tolerance
     assert exit_code(["solve", "cruise_control", "--tol", "inf"]) == 2
-    assert "positive finite" in capsys.readouterr().err
+    assert "ampc: error: --tol: expected a positive finite number" in capsys.readouterr().err
     # a warm start whose iterate is not finite (a result without a usable iterate)
-    first = run_json(capsys)
+    first = json.loads(json.dumps(base))
     first["warm_state"]["Z"][0][0] = None
     bad = tmp_path / "warm.json"
     bad.write_text(json.dumps(first))
@@ -215,16 +284,41 @@ def test_cli_input_mistakes_are_named(capsys, tmp_path):
     assert "warm_state.Z contains a null" in capsys.readouterr().err
     # options the reference solvers do not take are reported, not silently dropped
     assert main(["solve", "cruise_control", "--formulation", "integrated", "--rho", "2"]) == 0
-    assert "--rho ignored by --solver clarabel" in capsys.readouterr().err
+    assert "ampc: --rho ignored by --solver clarabel" in capsys.readouterr().err
+    code = main(
+        ["solve", "cruise_control", "--formulation", "integrated", "--solver", "osqp",
+         "--relaxation", "1.5", "--anderson", "2", "--max-iter", "50"]
+    )  # fmt: skip
+    assert code == 0
+    assert (
+        "ampc: --relaxation, --anderson, --max-iter ignored by --solver osqp"
+        in capsys.readouterr().err
+    )
+
+
+def test_rho_scale_next_to_a_given_rho_is_reported_once_with_its_cause(capsys, tmp_path):
+    small = _problem_file(tmp_path)
+    assert main(["solve", small, "--rho", "2", "--rho-scale", "2", "--json"]) == 0
+    err = capsys.readouterr().err
+    assert "--rho-scale ignored by --rho" in err and "--solver" not in err, err
+    code = main(
+        ["solve", small, "--formulation", "integrated", "--rho", "2", "--rho-scale", "2",
+         "--json"]
+    )  # fmt: skip
+    assert code == 0
+    err = capsys.readouterr().err
+    assert err.count("--rho-scale") == 1, err
 
 
 def test_bad_problem_files_go_to_stderr(capsys, tmp_path):
     assert main(["solve", str(tmp_path / "missing.json")]) == 2
-    assert "missing.json" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.startswith("ampc: error: ") and "missing.json" in err
     broken = tmp_path / "broken.json"
     broken.write_text("{not json")
     assert main(["solve", str(broken)]) == 2
-    assert "broken.json" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.startswith("ampc: error: ") and "broken.json" in err
     # agent c without bounds is on no constraint row (NOTES item 10)
     free = _problem_file(tmp_path)
     d = json.loads(open(free).read())
@@ -237,12 +331,15 @@ def test_bad_problem_files_go_to_stderr(capsys, tmp_path):
     assert out.err.startswith(
         f"ampc: error: {free}: agents[2] (c): input 0 appears in no constraint row"
     )
+    # the integrated formulation takes it (Clarabel needs no bounds)
+    ok = run_json_file(capsys, free, "--formulation", "integrated")
+    assert ok["status"] == "solved"
 
 
 def test_overflowing_problem_gives_strict_json(capsys, tmp_path):
     """x0 near float32's limit: no solution, and the output (warm state
     included) is still strict JSON, every non-finite number null."""
-    from ampc_jax.cli import _finite_or_none
+    from ampc_jax.cli.solve import _finite_or_none
 
     assert _finite_or_none({"a": [1.0, float("nan")], "b": float("inf"), "c": 2}) == {
         "a": [1.0, None],
@@ -255,11 +352,6 @@ def test_overflowing_problem_gives_strict_json(capsys, tmp_path):
     assert code == 1 and "no solution" in out.err
     result = json.loads(out.out, parse_constant=pytest.fail)
     assert set(result["u0"].values()) == {None} and result["status"] == "numerical_error"
-
-
-def test_iteration_cap_is_reported_on_stderr(capsys):
-    assert main(["solve", "cruise_control", "--max-iter", "3", "--json"]) == 0
-    assert "not converged: stopped at --max-iter 3" in capsys.readouterr().err
 
 
 def _hessian_problem(tmp_path, r_a, name):
@@ -295,16 +387,19 @@ def test_singular_hessian_needs_a_given_rho(capsys, tmp_path):
     """R_a = 0 and Q blind to a's last step: H_j is singular, eq.opt_ro's rho*
     (which needs H_j^-1) is undefined: refused naming the objective; with
     --rho the solve matches Clarabel's first step."""
-    path = _hessian_problem(tmp_path, 0.0, "singular.json")
-    from ampc_jax.formulations import singular_hessians
-    from ampc_jax.topology import Problem
+    from ampc_jax.admm.costs import singular_hessians
+    from ampc_jax.problem import Problem
 
+    path = _hessian_problem(tmp_path, 0.0, "singular.json")
     p = Problem.from_json(path)
     ((j, low, high),) = singular_hessians(p.topology, p.data())
     assert j == 0 and abs(low) <= 1e-12 * high
     for extra in ([], ["--formulation", "integrated", "--solver", "jax"]):
         assert main(["solve", str(path), "--json", *extra]) == 2
-        assert "H_j is singular" in capsys.readouterr().err
+        err = capsys.readouterr().err
+        assert err.startswith("ampc: error: objectives[0] ("), err
+        assert "its Hessian H_j is singular" in err
+        assert "give --rho VALUE" in err
     given = run_json_file(capsys, path, "--rho", "0.5", "--max-iter", "5000", "--tol", "1e-10")
     ref = run_json_file(capsys, path, "--formulation", "integrated", "--solver", "clarabel")
     assert given["converged"]
@@ -320,17 +415,3 @@ def test_ill_conditioned_hessian_is_not_called_singular(capsys, tmp_path):
     assert main(["solve", str(path), "--json"]) == 2
     err = capsys.readouterr().err
     assert "numerically singular (condition number" in err and "R_(i) singular" not in err
-
-
-def _run_ok(capsys, path, *args):
-    code = main(["solve", str(path), "--json", *args])
-    out = capsys.readouterr()
-    assert code == 0, out.err
-    return out.out
-
-
-def run_json_file(capsys, path, *args):
-    code = main(["solve", str(path), "--json", *args])
-    out = capsys.readouterr()
-    assert code == 0, out.err
-    return json.loads(out.out)

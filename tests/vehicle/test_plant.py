@@ -1,4 +1,4 @@
-"""Tests of ampc_jax.plant against closed-form limits and a fine-step reference."""
+"""Tests of ampc_jax.vehicle.plant against closed-form limits and a fine-step reference."""
 
 import time
 
@@ -7,8 +7,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ampc_jax import plant as PL
-from ampc_jax.plant import (
+from ampc_jax.vehicle import VehicleParams
+from ampc_jax.vehicle import plant as PL
+from ampc_jax.vehicle.plant import (
     PLANT_DT,
     initial_state,
     measure,
@@ -16,7 +17,6 @@ from ampc_jax.plant import (
     tyre_forces,
     understeer_gradient,
 )
-from ampc_jax.vehicle import VehicleParams
 
 pytestmark = pytest.mark.timeout(120)
 

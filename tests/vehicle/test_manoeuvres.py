@@ -1,11 +1,13 @@
-"""Tests of ampc_jax.manoeuvres: path geometry, the driver on the plant, scenarios."""
+"""Tests of ampc_jax.vehicle.manoeuvres: path geometry, the driver on the plant, scenarios."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ampc_jax.manoeuvres import (
+from ampc_jax.vehicle import CONTROL_DT, VehicleParams
+from ampc_jax.vehicle.cruise import cruise_wheel_torques
+from ampc_jax.vehicle.manoeuvres import (
     DLC_SECTIONS,
     SCENARIOS,
     DriverParams,
@@ -21,13 +23,8 @@ from ampc_jax.manoeuvres import (
     stack_scenarios,
     straight,
 )
-from ampc_jax.plant import measure, plant_step
-from ampc_jax.vehicle import (
-    CONTROL_DT,
-    VehicleParams,
-    cruise_wheel_torques,
-    stability_wheel_torques,
-)
+from ampc_jax.vehicle.plant import measure, plant_step
+from ampc_jax.vehicle.stability import stability_wheel_torques
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -164,7 +161,7 @@ def test_scenarios_are_float64_numpy_whatever_x64_at_import():
     import sys
 
     code = (
-        "import ampc_jax.manoeuvres as m, jax, numpy as np\n"
+        "import ampc_jax.vehicle.manoeuvres as m, jax, numpy as np\n"
         "jax.config.update('jax_enable_x64', True)\n"
         "sc = m.SCENARIOS['stability_launch_brake'].scenario\n"
         "assert sc.mu.dtype == np.float64 and float(sc.mu) == 0.3, sc.mu\n"
