@@ -1,17 +1,21 @@
-"""Per-case cost of the small batched linear algebra behind the 100x target.
+"""Per-case cost of the small batched linear algebra behind the batched-throughput target.
 
-Issue 2 asks for batched throughput of 100x a Python loop over OSQP, about
-4.8 us per case-step per core here (README, "Speed"). This prints, per case
-of a batch of 4096 on one core in float64, what single 40 x 40 pieces of a
-Local Explicit step (N_p = 10, 4 inputs) cost under XLA:CPU: a
-matrix-vector product, 30 of them in a loop, the inverse by symmetric sweeps
-(the algorithm of ``formulations._sweep_inverse``), LAPACK's inverse and
-Cholesky factorisation, and the Gram matrix Y'Y of a 10 x 40 Y; each in the
-usual batch-first layout and, where it applies, batch-last (the cases in the
-minor, SIMD, dimension)::
+The batched throughput target is 100x a Python loop over OSQP
+(docs/benchmarks.md): a few us per case-step per core (the loop's own rate is
+measured by ``bench_local_explicit.py``'s throughput part). This prints, per case of a
+batch of 4096 on one core in float64, what single 40 x 40 pieces of a Local
+Explicit step (N_p = 10, 4 inputs) cost under XLA:CPU: a matrix-vector
+product, 30 of them in a loop, the inverse by symmetric sweeps (the algorithm
+of ``ampc_jax.admm.linalg.sweep_inverse``), LAPACK's inverse and Cholesky
+factorisation, and the Gram matrix Y'Y of a 10 x 40 Y; each in the usual
+batch-first layout and, where it applies, batch-last (the cases in the minor,
+SIMD, dimension). Pinned to one core, so that the per-case figures are one
+core's::
 
     taskset -c 1 python bench/bench_batched_layout.py
-    python bench/bench_batched_layout.py --smoke   # batch 64, 3 repeats: a smoke run
+    python bench/bench_batched_layout.py --smoke   # batch 64, 3 repeats; no result file
+
+Result file: ``bench/results/bench_batched_layout.json`` (``--out``; ``bench/_meta.py``).
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import _meta  # bench/_meta.py, beside this script
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -28,6 +33,8 @@ import numpy as np
 import ampc_jax  # noqa: F401  (the package's XLA flags, set before the CPU backend starts)
 
 jax.config.update("jax_enable_x64", True)
+
+STEM = "bench_batched_layout"
 
 B, N = 4096, 40
 SMOKE_B, SMOKE_REPS = 64, 3
@@ -98,14 +105,16 @@ def gram_last(Y: Any) -> Any:
     return (Y[:, :, None, :] * Y[:, None, :, :]).sum(0)
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument(
         "--smoke",
         action="store_true",
         help=f"batch {SMOKE_B}, {SMOKE_REPS} repeats: the same programs, a quick check",
     )
+    _meta.add_out_argument(ap, STEM)
     args = ap.parse_args(argv)
+    run = _meta.Run(_meta.output_path(args, STEM))
     b, reps = (SMOKE_B, SMOKE_REPS) if args.smoke else (B, 20)
 
     def us(f: Callable, *a: Any) -> float:
@@ -130,13 +139,20 @@ def main(argv: list[str] | None = None) -> None:
     ]
     print(f"jax {jax.__version__}; us per case, batch {b}, {N} x {N}, float64")
     print(f"{'piece':<32}{'batch first':>12}{'batch last':>12}")
+    table = {}
     for name, f_first, f_last, which in rows:
         t_first = us(f_first, *(first[i] for i in which))
         t_last = us(f_last, *(last[i] for i in which))
-        print(f"{name:<32}{t_first:>12.3f}{t_last:>12.3f}")
-    print(f"{'LAPACK inverse':<32}{us(jnp.linalg.inv, first[0]):>12.3f}")
-    print(f"{'LAPACK Cholesky':<32}{us(jnp.linalg.cholesky, first[0]):>12.3f}")
+        table[name] = {"batch_first_us": t_first, "batch_last_us": t_last}
+        print(f"{name:<32}{t_first:>12.3f}{t_last:>12.3f}", flush=True)
+    for name, f in (("LAPACK inverse", jnp.linalg.inv), ("LAPACK Cholesky", jnp.linalg.cholesky)):
+        t = us(f, first[0])
+        table[name] = {"batch_first_us": t}
+        print(f"{name:<32}{t:>12.3f}", flush=True)
+    run.results = {"batch": b, "n": N, "repeats": reps, "dtype": "float64", "us_per_case": table}
+    run.finish()
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -4,11 +4,12 @@ For each closed-loop scenario this runs the closed loop once (to log every
 step's ProblemData and Local Explicit warm start, as ``replay_timing`` does),
 then times, interleaved on the logged steps (median per step, then the median
 over the steps), for Local Explicit and for IntegratedADMM (the r_time peer,
-warm started from its own previous solution):
+warm started from its own previous solution), each with its
+:class:`~ampc_jax.admm.SolverParams` as an argument as in ``replay_timing``:
 
-* ``full``: ``jax.jit(solver.solve)``, the call ``replay_timing`` times (the
-  whole SolveResult comes back: 13 arrays for either solver, the state in the
-  solver's stacked layout);
+* ``full``: ``jax.jit(solver.solve)(data, params, warm)``, the call
+  ``replay_timing`` times (the whole SolveResult comes back: 13 arrays for
+  either solver, the state in the solver's stacked layout);
 * ``no-op``: a jitted function with the same arguments and the same output
   structure that does no solving (sums its inputs into the outputs): JAX's
   cost of the call itself (argument handling, output buffers, dispatch);
@@ -16,10 +17,16 @@ warm started from its own previous solution):
   into one vector (``jax.flatten_util.ravel_pytree``) in and out and only u0,
   the next warm state and (status, iterations) returned.
 
-Usage: ``taskset -c 1 python bench/bench_call_overhead.py [SCENARIO ...]``
+The three calls of both solvers are interleaved at every step, so that a
+slower stretch of a shared machine hits all six alike. Usage::
+
+    taskset -c 1 python bench/bench_call_overhead.py [SCENARIO ...]
+    python bench/bench_call_overhead.py --smoke   # no result file
+
 (default: the three closed-loop scenarios). ``--smoke``: a quick check of the
 same code on the first scenario (or the ones named), 1 s of closed loop and 3
 interleaved calls per step, without the loop's shadow solver (unused here).
+Result file: ``bench/results/bench_call_overhead.json`` (``--out``; ``bench/_meta.py``).
 """
 
 from __future__ import annotations
@@ -29,34 +36,31 @@ import sys
 import time
 from typing import Any
 
+import _meta  # bench/_meta.py, beside this script
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
 import ampc_jax  # noqa: F401  (its XLA flags; JAX starts its backend later)
-from ampc_jax.formulations import cold_state, shift_state
-from ampc_jax.integrated import merged_topology
-from ampc_jax.simulation import (
-    build_topology,
-    config_for,
-    integrated_solver,
-    local_explicit_solver,
-    simulate,
-)
+from ampc_jax.closed_loop import config_for, simulate
+from ampc_jax.closed_loop.controller import OK_STATUS
+from ampc_jax.formulations import IntegratedADMM, LocalExplicit
 
 jax.config.update("jax_enable_x64", True)
+
+STEM = "bench_call_overhead"
 
 SCENARIOS = ("cruise_lane_change", "stability_launch_brake", "stability_dlc")
 REPEATS = 25
 SMOKE_DURATION, SMOKE_REPEATS = 1.0, 3  # s of closed loop, calls per step
 
 
-def _noop_like(solver: Any, d: Any, w: Any) -> Any:
-    shape = jax.eval_shape(lambda: solver.solve(d, None, w))
+def _noop_like(solver: Any, d: Any, p: Any, w: Any) -> Any:
+    shape = jax.eval_shape(lambda: solver.solve(d, p, w))
 
-    def f(d: Any, rho: Any, w: Any) -> Any:
-        s = sum(jnp.sum(x).astype(jnp.float64) for x in jax.tree.leaves((d, w)) if x.size)
+    def f(d: Any, p: Any, w: Any) -> Any:
+        s = sum(jnp.sum(x).astype(jnp.float64) for x in jax.tree.leaves((d, p, w)) if x.size)
         return jax.tree.map(lambda t: jnp.full(t.shape, s).astype(t.dtype), shape)
 
     return f
@@ -65,9 +69,9 @@ def _noop_like(solver: Any, d: Any, w: Any) -> Any:
 def _packed(solver: Any, template: Any, shift: int) -> Any:
     _, unravel = ravel_pytree(template)
 
-    def f(d: Any, p: Any) -> Any:
-        r = solver.solve(d, None, unravel(p))
-        nxt = ravel_pytree(shift_state(r.state, shift))[0]
+    def f(d: Any, params: Any, packed: Any) -> Any:
+        r = solver.solve(d, params, unravel(packed))
+        nxt = ravel_pytree(solver.shift(r.state, shift))[0]
         return r.u[0], nxt, jnp.stack([r.status, r.iterations])
 
     return f
@@ -78,40 +82,47 @@ def run(name: str, repeats: int = REPEATS, duration: float | None = None) -> dic
     cfg = config_for(name) if duration is None else config_for(name, shadow=False)
     res = simulate(name, cfg, duration=duration)
     log = res.log
-    T = build_topology(cfg)[0]
-    le = local_explicit_solver(cfg, T)
-    ia = integrated_solver(cfg, T, max_iter=max(cfg.max_iter, 2000))
+    T = cfg.controller().topology
+    le = LocalExplicit(T, max_iter=cfg.max_iter, anderson=cfg.anderson)
+    ia = IntegratedADMM(T, max_iter=max(cfg.max_iter, 2000), anderson=cfg.anderson)
+    p_le = cfg.loop_params().controller.solver
+    p_ia = ia.params(
+        rho=cfg.integrated_rho_scale,
+        relaxation=cfg.relaxation,
+        tol_primal=cfg.tol_primal,
+        tol_dual=cfg.tol_dual,
+    )
     K = len(log.t)
     ds = [jax.device_put(jax.tree.map(lambda x, k=k: x[k], log.data)) for k in range(K)]
     ws = [jax.device_put(jax.tree.map(lambda x, k=k: x[k], log.warm)) for k in range(K)]
-    cold = cold_state(merged_topology(T), jnp.float64)
+    cold = ia.cold_state(jnp.float64)
     # the peer's warm chain, as in replay_timing
-    full_i = jax.jit(ia.solve).lower(ds[0], None, cold).compile()
+    full_i = jax.jit(ia.solve).lower(ds[0], p_ia, cold).compile()
     wis = [cold]
     for k in range(K - 1):
-        r = full_i(ds[k], None, wis[-1])
-        ok = int(r.status) in (0, 1) and bool(np.all(np.isfinite(np.asarray(r.u))))
-        wis.append(shift_state(r.state, cfg.warm_shift) if ok else cold)
+        r = full_i(ds[k], p_ia, wis[-1])
+        ok = int(r.status) in OK_STATUS and bool(np.all(np.isfinite(np.asarray(r.u))))
+        wis.append(ia.shift(r.state, cfg.warm_shift) if ok else cold)
     fns = {
-        ("LE", "full"): (jax.jit(le.solve).lower(ds[0], None, ws[0]).compile(), "le3"),
+        ("LE", "full"): (jax.jit(le.solve).lower(ds[0], p_le, ws[0]).compile(), "le3"),
         ("int", "full"): (full_i, "ia3"),
         ("LE", "no-op"): (
-            jax.jit(_noop_like(le, ds[0], ws[0])).lower(ds[0], None, ws[0]).compile(),
+            jax.jit(_noop_like(le, ds[0], p_le, ws[0])).lower(ds[0], p_le, ws[0]).compile(),
             "le3",
         ),
         ("int", "no-op"): (
-            jax.jit(_noop_like(ia, ds[0], cold)).lower(ds[0], None, cold).compile(),
+            jax.jit(_noop_like(ia, ds[0], p_ia, cold)).lower(ds[0], p_ia, cold).compile(),
             "ia3",
         ),
         ("LE", "packed"): (
             jax.jit(_packed(le, ws[0], cfg.warm_shift))
-            .lower(ds[0], ravel_pytree(ws[0])[0])
+            .lower(ds[0], p_le, ravel_pytree(ws[0])[0])
             .compile(),
             "le2",
         ),
         ("int", "packed"): (
             jax.jit(_packed(ia, cold, cfg.warm_shift))
-            .lower(ds[0], ravel_pytree(cold)[0])
+            .lower(ds[0], p_ia, ravel_pytree(cold)[0])
             .compile(),
             "ia2",
         ),
@@ -121,10 +132,10 @@ def run(name: str, repeats: int = REPEATS, duration: float | None = None) -> dic
 
     def args(kind: str, k: int) -> tuple:
         return {
-            "le3": (ds[k], None, ws[k]),
-            "ia3": (ds[k], None, wis[k]),
-            "le2": (ds[k], pl[k]),
-            "ia2": (ds[k], pi[k]),
+            "le3": (ds[k], p_le, ws[k]),
+            "ia3": (ds[k], p_ia, wis[k]),
+            "le2": (ds[k], p_le, pl[k]),
+            "ia2": (ds[k], p_ia, pi[k]),
         }[kind]
 
     per: dict[tuple, list] = {key: [] for key in fns}
@@ -149,6 +160,8 @@ def run(name: str, repeats: int = REPEATS, duration: float | None = None) -> dic
             (t[("LE", "full")] - t[("LE", "no-op")]) / (t[("int", "full")] - t[("int", "no-op")])
         )
     )
+    out["steps"] = K
+    out["timed_steps"] = len(range(0, K, 2))
     return out
 
 
@@ -161,7 +174,9 @@ def main(argv: list[str]) -> int:
         help=f"{SMOKE_DURATION:g} s of closed loop, {SMOKE_REPEATS} calls per step, "
         "the first scenario unless named",
     )
+    _meta.add_out_argument(ap, STEM)
     args = ap.parse_args(argv)
+    run_ = _meta.Run(_meta.output_path(args, STEM))
     names = args.scenarios or list(SCENARIOS[:1] if args.smoke else SCENARIOS)
     repeats = SMOKE_REPEATS if args.smoke else REPEATS
     duration = SMOKE_DURATION if args.smoke else None
@@ -172,14 +187,23 @@ def main(argv: list[str]) -> int:
         "| scenario | LE full / no-op / packed (us) | int. full / no-op / packed (us) | r_time full | packed | full minus no-op |"
     )
     print("| --- | --- | --- | --- | --- | --- |")
+    rows = {}
     for name in names:
         o = run(name, repeats, duration)
+        rows[name] = o
         print(
             f"| {name} | {o['LE full']:.1f} / {o['LE no-op']:.1f} / {o['LE packed']:.1f} | "
             f"{o['int full']:.1f} / {o['int no-op']:.1f} / {o['int packed']:.1f} | "
             f"{o['r_time full']:.3f} | {o['r_time packed']:.3f} | {o['r_time full minus no-op']:.3f} |",
             flush=True,
         )
+    run_.results = {
+        "repeats": repeats,
+        "duration_s": duration,
+        "unit": "us per call (median over the timed steps of per-step medians)",
+        "scenarios": rows,
+    }
+    run_.finish()
     return 0
 
 

@@ -3,13 +3,15 @@
 Two sub-commands:
 
 ``sweep``
-    Chooses the per-example defaults of ``SimConfig.rho_scale``,
-    ``relaxation`` and ``integrated_rho_scale`` (``simulation.CONTROLLER_DEFAULTS``).
-    For every scenario of the example, one closed loop is run with the paper's
-    solver (rho* unscaled, no over-relaxation) and its per-step
-    :class:`ProblemData` and shadow optimum are logged. The logged steps are
-    then replayed in order, each solve warm started from the replay's own
-    shifted previous iterate (as in the loop), for every point of a grid:
+    Chooses each vehicle example's solver defaults
+    (``VehicleExample.solver_defaults``: the ``SimConfig`` fields ``rho_scale``,
+    ``relaxation``, ``integrated_rho_scale``, ``shadow_rho_scale`` and
+    ``shadow_relaxation``). For every scenario of the example, one closed loop
+    is run with the paper's solver (``PAPER_SOLVER_OPTIONS``: rho* unscaled, no
+    over-relaxation, no acceleration) and its per-step :class:`ProblemData`
+    and shadow optimum are logged. The logged steps are then replayed in
+    order, each solve warm started from the replay's own shifted previous
+    iterate (as in the loop), for every point of a grid:
 
     * Local Explicit: rho_j = s_j rho_j* with (s_1, s_2) on a 7 x 7 grid, for
       each relaxation alpha;
@@ -25,16 +27,32 @@ Two sub-commands:
     alphas is printed too, to show it is not handicapped). The shadow's
     settings are chosen by iterations at its tight tolerance.
 
+    Every grid point is a :class:`~ampc_jax.admm.SolverParams` point, an
+    argument of the compiled replay: each solver (a set of static options:
+    formulation and iteration cap) is compiled once per logged run length,
+    and the points go through that one program ``--chunk`` at a time
+    (vmapped). The script prints the number of compiled programs
+    (``_cache_size()`` of each jitted replay): one per solver and run length
+    whatever the number of points. The whole sweep takes under a minute on one
+    core, most of it compiling; the chunk size hardly matters (the full cruise
+    sweep took 26, 25 and 26 s with chunks of 1, 8 and 32, and chose the same
+    settings).
+
 ``table DIR [DIR ...]``
     Prints the markdown table of docs/results.md from the ``metrics.json`` of
-    ``ampc simulate`` runs (one directory per run; a directory holding run
-    directories is expanded).
+    ``ampc simulate`` runs (one directory per run, with its ``baseline/`` when
+    it has one; a directory holding run directories is expanded). It formats
+    existing runs and writes no result file.
 
-Run pinned to one core (batched XLA:CPU programs can deadlock on 2 cores)::
+Run pinned to one core (batched XLA:CPU programs can deadlock on 2 cores,
+docs/known-issues.md)::
 
-    timeout 3000 taskset -c 1 python bench/bench_closed_loop.py sweep
-    python bench/bench_closed_loop.py sweep --smoke   # a quick check, 1 s of cruise
-    timeout 60 taskset -c 1 python bench/bench_closed_loop.py table results/
+    timeout 600 taskset -c 1 python bench/bench_closed_loop.py sweep   # under a minute
+    python bench/bench_closed_loop.py sweep --smoke   # 1 s of cruise; no result file
+    timeout 60 taskset -c 1 python bench/bench_closed_loop.py table runs/
+
+Result file of ``sweep``: ``bench/results/bench_closed_loop.json`` (``--out``;
+``bench/_meta.py``).
 """
 
 from __future__ import annotations
@@ -47,10 +65,12 @@ import time
 from pathlib import Path
 from typing import Any
 
+import _meta  # bench/_meta.py, beside this script
 import numpy as np
 
 import ampc_jax  # noqa: F401  (XLA:CPU workaround before JAX starts)
 
+STEM = "bench_closed_loop"
 EXAMPLES = {
     "cruise": ("cruise_lane_change",),
     "stability": ("stability_launch_brake", "stability_dlc"),
@@ -61,7 +81,11 @@ LE_GRID = (0.2, 0.3, 0.5, 0.7, 1.0, 1.5, 2.0)
 INT_GRID = (0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.7, 0.85, 1.0, 1.2, 1.5, 2.0)
 RELAXATIONS = (1.0, 1.2, 1.4, 1.5, 1.6, 1.7, 1.8)
 SHADOW_GRID = (0.3, 0.5, 1.0, 2.0)
+SHADOW_TOL, SHADOW_MAX_ITER = 1e-8, 5000  # the loop's shadow (SimConfig defaults)
+SWEEP_MAX_ITER = 2000  # the replays' cap: high enough that the cap itself picks nothing
+CHUNK = 8  # parameter points vmapped together in one call of a compiled replay (docstring)
 SMOKE_DURATION = 1.0  # s of closed loop in ``sweep --smoke``
+SMOKE_CHUNK = 2  # few points in a smoke run: still two chunks and a padded one
 
 
 # --------------------------------------------------------------------------- replay
@@ -73,78 +97,123 @@ def logged_run(name: str, duration: float | None = None) -> tuple[Any, Any]:
     import jax
     import jax.numpy as jnp
 
-    from ampc_jax.simulation import PAPER_SOLVER_OPTIONS, config_for, simulate
+    from ampc_jax.closed_loop import PAPER_SOLVER_OPTIONS, config_for, simulate
 
     cfg = config_for(name, **PAPER_SOLVER_OPTIONS)
     res = simulate(name, cfg, duration=duration)
     return cfg, jax.tree.map(jnp.asarray, res.log)
 
 
-def replay(
-    config: Any,
-    log: Any,
-    scales: np.ndarray,
-    relaxation: float,
-    integrated: bool,
-    tol: float | None = None,
-    max_iter: int = 2000,
-) -> dict[str, np.ndarray]:
-    """Replay the logged steps in order for every row of ``scales`` (vmapped).
+class Replay:
+    """The logged steps of a closed loop replayed in order through one solver,
+    for a batch of :class:`~ampc_jax.admm.SolverParams` points.
 
-    Each step is solved from the replay's own shifted previous iterate (cold
-    after a failed step), with rho = scale * rho* of that step. Returns
-    ``iterations`` (G, K), ``e_sub`` (G, K * n_u) against the logged shadow
-    optimum, and ``status`` (G, K).
+    One jitted program (``fn``) per solver: it takes the run's ProblemData
+    (steps on the leading axis) and ``chunk`` parameter points, so every
+    scenario of the same length and every point reuse it. Each step is solved
+    from the replay's own shifted previous iterate (cold after a failed step,
+    or at every step without warm start).
     """
-    import jax
-    import jax.numpy as jnp
 
-    from ampc_jax.formulations import LocalExplicit, cold_state, shift_state
-    from ampc_jax.integrated import IntegratedADMM, merged_data, merged_topology
-    from ampc_jax.simulation import _input_columns, build_topology
+    def __init__(self, solver: Any, warm_start: bool, warm_shift: int, chunk: int) -> None:
+        import jax
+        import jax.numpy as jnp
 
-    T, agent_idx, _ = build_topology(config)
-    tp = config.tol_primal if tol is None else tol
-    td = config.tol_dual if tol is None else tol
-    dt = log.data.A.dtype
-    kw = dict(max_iter=max_iter, tol_primal=tp, tol_dual=td, relaxation=relaxation)
-    if integrated:
-        solver = IntegratedADMM(T, **kw)
-        inner = solver.inner
-        cold = cold_state(merged_topology(T), dt)
+        self.solver, self.chunk = solver, chunk
 
-        def rho_star(d: Any) -> Any:
-            return inner.setup(merged_data(d)).rho
+        def one(data: Any, p: Any) -> Any:
+            cold = solver.cold_state(data.A.dtype)
 
-    else:
-        solver = LocalExplicit(T, **kw)
-        cold = cold_state(T, dt)
+            def step(warm: Any, d: Any) -> Any:
+                res = solver.solve(d, p, warm)
+                ok = (res.status <= 1) & jnp.all(jnp.isfinite(res.u0))
+                shifted = solver.shift(res.state, warm_shift)
+                new = jax.tree.map(lambda a, b: jnp.where(ok, a, b), shifted, cold)
+                return (new if warm_start else cold), (res.iterations, res.u0, res.status)
 
-        def rho_star(d: Any) -> Any:
-            return solver.setup(d).rho
+            return jax.lax.scan(step, cold, data)[1]
 
-    def run(scale: Any) -> Any:
-        def step(warm: Any, d: Any) -> Any:
-            res = solver.solve(d, rho=rho_star(d) * scale, warm=warm)
-            ok = (res.status <= 1) & jnp.all(jnp.isfinite(res.u0))
-            new = jax.tree.map(lambda a, b: jnp.where(ok, a, b), shift_state(res.state), cold)
-            if not config.warm_start:
-                new = cold
-            return new, (res.iterations, res.u0, res.status)
+        self.fn = jax.jit(jax.vmap(one, in_axes=(None, 0)))
 
-        _, out = jax.lax.scan(step, cold, log.data)
-        return out
+    def compiles(self) -> int:
+        """Programs compiled so far (one per distinct logged run length)."""
+        return int(self.fn._cache_size())
 
-    it, u0, st = jax.jit(jax.vmap(run))(jnp.asarray(scales, dt))
-    cols = _input_columns(config, agent_idx)
-    ush = np.asarray(log.u_shadow)[:, cols]
-    e = np.abs(np.asarray(u0) - ush[None])
-    return {
-        "iterations": np.asarray(it),
-        "e_sub": e.reshape(e.shape[0], -1),
-        "status": np.asarray(st),
-        "u0": np.asarray(u0),
-    }
+    def __call__(self, data: Any, params: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(iterations (P, K), u0 (P, K, n_u), status (P, K)) for P points ``params``
+        (leading axis P on every leaf), ``chunk`` points per call (the last chunk
+        padded with copies of the last point)."""
+        import jax
+        import jax.numpy as jnp
+
+        P = int(np.shape(params.relaxation)[0])
+        pad = (-P) % self.chunk
+        padded = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad, 0)]), params)
+        outs = []
+        for c in range(0, P + pad, self.chunk):
+            part = jax.tree.map(lambda x, c=c: x[c : c + self.chunk], padded)
+            outs.append(jax.device_get(self.fn(data, part)))
+        it, u0, st = (np.concatenate(x)[:P] for x in zip(*outs, strict=True))
+        return it, u0, st
+
+
+class Replays:
+    """The compiled replays of one example, one per solver (kind, iteration cap)."""
+
+    def __init__(self, config: Any, chunk: int) -> None:
+        self.config, self.chunk = config, chunk
+        self.topology = config.controller().topology
+        self.cols = config.controller().input_columns
+        self.replays: dict[tuple[str, int], Replay] = {}
+        self.points = 0
+
+    def get(self, kind: str, max_iter: int) -> Replay:
+        from ampc_jax.formulations import IntegratedADMM, LocalExplicit
+
+        if (kind, max_iter) not in self.replays:
+            cls = IntegratedADMM if kind == "int" else LocalExplicit
+            solver = cls(self.topology, max_iter=max_iter)
+            self.replays[kind, max_iter] = Replay(
+                solver, self.config.warm_start, self.config.warm_shift, self.chunk
+            )
+        return self.replays[kind, max_iter]
+
+    def run(
+        self,
+        log: Any,
+        kind: str,
+        scales: np.ndarray,
+        relaxations: np.ndarray,
+        tols: np.ndarray,
+        max_iter: int,
+    ) -> dict[str, np.ndarray]:
+        """Replay ``log`` for P points: ``scales`` (P, n_rho) factors on rho*,
+        ``relaxations`` (P,), ``tols`` (P,) for eps_r = eps_s. Returns
+        ``iterations`` (P, K), ``e_sub`` (P, K * n_u) against the logged shadow
+        optimum, ``status`` (P, K) and ``u0`` (P, K, n_u)."""
+        replay = self.get(kind, max_iter)
+        dt = log.data.A.dtype
+        params = replay.solver.params(
+            rho=np.asarray(scales, float),
+            relaxation=np.asarray(relaxations, float),
+            tol_primal=np.asarray(tols, float),
+            tol_dual=np.asarray(tols, float),
+            dtype=dt,
+        )
+        it, u0, st = replay(log.data, params)
+        self.points += len(relaxations)
+        ush = np.asarray(log.u_shadow)[:, self.cols]
+        e = np.abs(u0 - ush[None])
+        return {
+            "iterations": it,
+            "e_sub": e.reshape(e.shape[0], -1),
+            "status": st,
+            "u0": u0,
+        }
+
+    def compiles(self) -> dict[str, int]:
+        label = {"le": "Local Explicit", "int": "IntegratedADMM"}
+        return {f"{label[k]} max_iter {m}": r.compiles() for (k, m), r in self.replays.items()}
 
 
 def stats(r: dict[str, np.ndarray], g: int) -> dict[str, float]:
@@ -176,6 +245,13 @@ def _fmt_stats(s: dict[str, float]) -> str:
     )
 
 
+def _grid_points(grid: np.ndarray, relaxations: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Every (scale row, alpha): scales (A * G, n_rho) and alphas (A * G,), alpha-major."""
+    scales = np.concatenate([grid] * len(relaxations))
+    alphas = np.repeat(np.asarray(relaxations, float), len(grid))
+    return scales, alphas
+
+
 def sweep_example(example: str, args: argparse.Namespace) -> dict[str, Any]:
     names = EXAMPLES[example]
     logs = {}
@@ -183,25 +259,43 @@ def sweep_example(example: str, args: argparse.Namespace) -> dict[str, Any]:
         t0 = time.perf_counter()
         logs[n] = logged_run(n, SMOKE_DURATION if args.smoke else None)
         print(f"[{n}: logged closed loop, {time.perf_counter() - t0:.1f} s]", file=sys.stderr)
+    cfg0 = next(iter(logs.values()))[0]
+    replays = Replays(cfg0, args.chunk)
+    tol = cfg0.tol_primal  # the controller's eps_r = eps_s
     le_grid = np.array(list(itertools.product(args.le_grid, args.le_grid)))
     int_grid = np.array([[s] for s in args.int_grid])
     results: dict[str, Any] = {"le": {}, "int": {}}
-    for alpha in args.relaxations:
-        for kind, grid in (("le", le_grid), ("int", int_grid)):
-            per = {
-                n: replay(cfg, log, grid, alpha, kind == "int", max_iter=2000)
-                for n, (cfg, log) in logs.items()
-            }
+    for kind, grid in (("le", le_grid), ("int", int_grid)):
+        t0 = time.perf_counter()
+        scales, alphas = _grid_points(grid, args.relaxations)
+        per = {
+            n: replays.run(log, kind, scales, alphas, np.full(len(alphas), tol), SWEEP_MAX_ITER)
+            for n, (_, log) in logs.items()
+        }
+        for a, alpha in enumerate(args.relaxations):
             rows = []
             for g in range(len(grid)):
-                ps = {n: stats(per[n], g) for n in names}
+                ps = {n: stats(per[n], a * len(grid) + g) for n in names}
                 rows.append((_score(ps), tuple(float(x) for x in grid[g]), ps))
             results[kind][alpha] = rows
-            print(f"[{kind} alpha={alpha} done]", file=sys.stderr)
+        print(
+            f"[{kind}: {len(alphas)} points x {len(names)} scenarios, "
+            f"{time.perf_counter() - t0:.1f} s]",
+            file=sys.stderr,
+        )
 
     def best(kind: str, alpha: float) -> Any:
         return min(results[kind][alpha], key=lambda r: r[0])
 
+    out: dict[str, Any] = {
+        "scenarios": list(names),
+        "steps": {n: int(np.shape(log.t)[0]) for n, (_, log) in logs.items()},
+        "relaxations": list(args.relaxations),
+        "le_grid": list(args.le_grid),
+        "int_grid": list(args.int_grid),
+        "best_per_relaxation": [],
+        "paper": [],
+    }
     head = " | ".join(f"{n}: it p50 / p95 / max, mean, e_sub p95 / max (Nm)" for n in names)
     print(f"\n### {example}: best rho scale per relaxation (tolerance 1 Nm^2, warm start)\n")
     print(f"| solver | alpha | rho scale | {head} |")
@@ -212,6 +306,9 @@ def sweep_example(example: str, args: argparse.Namespace) -> dict[str, Any]:
             label = "Local Explicit" if kind == "le" else "IntegratedADMM"
             cells = " | ".join(_fmt_stats(ps[n]) for n in names)
             print(f"| {label} | {alpha:g} | {scale} | {cells} |")
+            out["best_per_relaxation"].append(
+                {"solver": label, "alpha": alpha, "rho_scale": scale, "score": sc, "stats": ps}
+            )
     for kind in ("le", "int"):
         rows = results[kind].get(1.0, [])
         unit = [r for r in rows if all(abs(x - 1.0) < 1e-12 for x in r[1])]
@@ -219,6 +316,7 @@ def sweep_example(example: str, args: argparse.Namespace) -> dict[str, Any]:
             cells = " | ".join(_fmt_stats(unit[0][2][n]) for n in names)
             label = "Local Explicit" if kind == "le" else "IntegratedADMM"
             print(f"| {label} (paper) | 1 | 1 | {cells} |")
+            out["paper"].append({"solver": label, "score": unit[0][0], "stats": unit[0][2]})
 
     alpha_star = min(args.relaxations, key=lambda a: best("le", a)[0])
     le_best = best("le", alpha_star)
@@ -233,6 +331,15 @@ def sweep_example(example: str, args: argparse.Namespace) -> dict[str, Any]:
         f"  IntegratedADMM score at alpha {alpha_star:g}: {int_best[0]}; its best over all "
         f"alphas: alpha {int_any[0]:g}, scale {int_any[1][1][0]:g}, score {int_any[1][0]}"
     )
+    out["scores"] = {
+        "local_explicit": le_best[0],
+        "integrated_at_chosen_alpha": int_best[0],
+        "integrated_best_any_alpha": {
+            "alpha": int_any[0],
+            "rho_scale": int_any[1][1][0],
+            "score": int_any[1][0],
+        },
+    }
 
     # the chosen settings at looser tolerances and with an iteration budget
     print(f"\n### {example}: chosen Local Explicit settings, tolerance and budget\n")
@@ -242,14 +349,28 @@ def sweep_example(example: str, args: argparse.Namespace) -> dict[str, Any]:
         + " |"
     )
     print("| --- | --- | " + " | ".join("---" for _ in names) + " |")
-    scale_row = np.array([le_best[1]])
-    tols = [(1.0, 2000)] if args.smoke else [(1.0, 2000), (3.0, 2000), (10.0, 2000)]
-    for tol, cap in tols + [(1.0, max(TARGETS[n] for n in names))]:
-        cells = []
-        for cfg, log in logs.values():
-            r = replay(cfg, log, scale_row, alpha_star, False, tol=tol, max_iter=cap)
-            cells.append(_fmt_stats(stats(r, 0)))
-        print(f"| {tol:g} | {cap} | " + " | ".join(cells) + " |")
+    tols = [1.0] if args.smoke else [1.0, 3.0, 10.0]
+    cap = max(TARGETS[n] for n in names)
+    scale = np.array([le_best[1]])
+    budget = {}
+    for n, (_, log) in logs.items():
+        budget[n] = (
+            replays.run(
+                log,
+                "le",
+                np.repeat(scale, len(tols), 0),
+                np.full(len(tols), alpha_star),
+                np.asarray(tols),
+                SWEEP_MAX_ITER,
+            ),
+            replays.run(log, "le", scale, np.array([alpha_star]), np.array([1.0]), cap),
+        )
+    out["budget"] = []
+    for i, (t, m) in enumerate([(t, SWEEP_MAX_ITER) for t in tols] + [(1.0, cap)]):
+        which, g = (0, i) if i < len(tols) else (1, 0)
+        ps = {n: stats(budget[n][which], g) for n in names}
+        print(f"| {t:g} | {m} | " + " | ".join(_fmt_stats(ps[n]) for n in names) + " |")
+        out["budget"].append({"tol": t, "max_iter": m, "stats": ps})
 
     # the shadow: iterations to its tight tolerance
     print(f"\n### {example}: shadow IntegratedADMM at 1e-8 Nm^2\n")
@@ -262,39 +383,59 @@ def sweep_example(example: str, args: argparse.Namespace) -> dict[str, Any]:
         + " |"
     )
     print("| --- | --- | " + " | ".join("---" for _ in names) + " |")
-    shadow_rows = []
+    sh_alphas = sorted({1.0, alpha_star} if args.smoke else {1.0, alpha_star, 1.8})
     sgrid = np.array([[s] for s in SHADOW_GRID])
-    for alpha in sorted({1.0, alpha_star} if args.smoke else {1.0, alpha_star, 1.8}):
-        per = {}
-        for n, (cfg, log) in logs.items():
-            r = replay(cfg, log, sgrid, alpha, True, tol=1e-8, max_iter=5000)
-            per[n] = r
-        for g, s in enumerate(SHADOW_GRID):
-            cells, worst = [], 0.0
-            ok = True
-            for n in logs:
-                st = stats(per[n], g)
-                dev = float(np.nanmax(per[n]["e_sub"][g]))
-                ok &= st["not_solved"] == 0
-                worst = max(worst, st["p95"])
-                cells.append(
-                    f"{st['p50']:.0f} / {st['p95']:.0f} / {st['max']:.0f}, "
-                    f"{st['not_solved']}, {dev:.1e}"
-                )
-            shadow_rows.append((not ok, worst, alpha, s))
-            print(f"| {alpha:g} | {s:g} | " + " | ".join(cells) + " |")
+    scales, alphas = _grid_points(sgrid, tuple(sh_alphas))
+    per = {
+        n: replays.run(
+            log, "int", scales, alphas, np.full(len(alphas), SHADOW_TOL), SHADOW_MAX_ITER
+        )
+        for n, (_, log) in logs.items()
+    }
+    shadow_rows = []
+    out["shadow"] = []
+    for g, (s, alpha) in enumerate(zip(scales[:, 0], alphas, strict=True)):
+        cells, worst = [], 0.0
+        ok = True
+        cell_stats = {}
+        for n in logs:
+            st = stats(per[n], g)
+            dev = float(np.nanmax(per[n]["e_sub"][g]))
+            ok &= st["not_solved"] == 0
+            worst = max(worst, st["p95"])
+            cell_stats[n] = {**st, "max_deviation": dev}
+            cells.append(
+                f"{st['p50']:.0f} / {st['p95']:.0f} / {st['max']:.0f}, "
+                f"{st['not_solved']}, {dev:.1e}"
+            )
+        shadow_rows.append((not ok, worst, float(alpha), float(s)))
+        print(f"| {alpha:g} | {s:g} | " + " | ".join(cells) + " |")
+        out["shadow"].append({"alpha": float(alpha), "rho_scale": float(s), "stats": cell_stats})
     sh = min(shadow_rows)
     print(
         f"\nshadow for {example}: relaxation {sh[2]:g}, rho scale {sh[3]:g} "
         f"(worst p95 {sh[1]:.0f} iterations, all solved: {not sh[0]})"
     )
-    return {
+    compiles = replays.compiles()
+    print(
+        f"\n[{example}: {replays.points // len(names)} parameter points x {len(names)} "
+        f"scenario(s) replayed through "
+        f"{sum(compiles.values())} compiled replays ("
+        + ", ".join(f"{k}: {v}" for k, v in compiles.items())
+        + ")]",
+        flush=True,
+    )
+    out["compiles"] = compiles
+    out["points_replayed_per_scenario"] = replays.points // len(names)
+    chosen = {
         "relaxation": alpha_star,
         "rho_scale": le_best[1],
         "integrated_rho_scale": int_best[1][0],
         "shadow_relaxation": sh[2],
         "shadow_rho_scale": sh[3],
     }
+    out["chosen"] = chosen
+    return out
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
@@ -302,37 +443,53 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
     jax.config.update("jax_enable_x64", True)
     if args.smoke:  # one grid point each unless given
+        args.chunk = SMOKE_CHUNK if args.chunk is None else args.chunk
         args.example = args.example or "cruise"
         args.relaxations = args.relaxations or (1.0,)
         args.le_grid = args.le_grid or (1.0,)
         args.int_grid = args.int_grid or (1.0,)
     else:
+        args.chunk = CHUNK if args.chunk is None else args.chunk
         args.example = args.example or "all"
         args.relaxations = args.relaxations or RELAXATIONS
         args.le_grid = args.le_grid or LE_GRID
         args.int_grid = args.int_grid or INT_GRID
-    chosen = {}
+    args.relaxations = tuple(float(a) for a in args.relaxations)
+    run = _meta.Run(_meta.output_path(args, STEM))
+    chosen, per_example = {}, {}
     for ex in ("cruise", "stability") if args.example == "all" else (args.example,):
-        chosen[ex] = sweep_example(ex, args)
-    print("\nCONTROLLER_DEFAULTS =", json.dumps(chosen, indent=1))
+        per_example[ex] = sweep_example(ex, args)
+        chosen[ex] = per_example[ex]["chosen"]
+    print("\nsolver_defaults =", json.dumps(chosen, indent=1))
+    run.results = {
+        "smoke": args.smoke,
+        "duration_s": SMOKE_DURATION if args.smoke else "each scenario's",
+        "chunk": args.chunk,
+        "examples": per_example,
+        "solver_defaults": chosen,
+    }
+    run.finish()
     return 0
 
 
 # --------------------------------------------------------------------------- table
 def _runs(paths: list[str]) -> list[tuple[str, dict[str, Any]]]:
+    """(name, metrics) of every run under ``paths``: ``DIR/metrics.json`` named
+    ``DIR``, its ``DIR/baseline/metrics.json`` (``ampc simulate --compare``,
+    ``ampc demo``) named ``DIR/baseline``; a directory without ``metrics.json``
+    is expanded to its run directories."""
     out = []
     for p in map(Path, paths):
-        files = (
-            [p / "metrics.json"]
+        runs = (
+            [p]
             if (p / "metrics.json").exists()
-            else sorted(p.glob("*/metrics.json"))
+            else sorted(q.parent for q in p.glob("*/metrics.json"))
         )
-        for f in files:
-            m = json.loads(f.read_text())
-            if "LST+YRT" in m:  # ampc demo writes both runs
-                out += [(f"{f.parent.name}/{k}", v) for k, v in m.items()]
-            else:
-                out.append((f.parent.name, m))
+        for r in runs:
+            out.append((r.name, json.loads((r / "metrics.json").read_text())))
+            base = r / "baseline" / "metrics.json"
+            if base.exists():
+                out.append((f"{r.name}/baseline", json.loads(base.read_text())))
     return out
 
 
@@ -354,7 +511,7 @@ def cmd_table(args: argparse.Namespace) -> int:
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for name, m in runs:
         active = m["formulation"] != "none"
-        objs = "+".join(m["objectives"]) if active else "driver alone"
+        objs = "+".join(m["objectives"]) if active else m.get("no_mpc", "no MPC")
         solver = (
             f"{_g(m, 'relaxation', 'g')} / {m.get('rho_scale')}; "
             f"{_g(m, 'integrated_rho_scale', 'g')} / {m.get('anderson', 0)}"
@@ -386,17 +543,27 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--le-grid", type=float, nargs="+", help=f"default: {LE_GRID}")
     s.add_argument("--int-grid", type=float, nargs="+", help=f"default: {INT_GRID}")
     s.add_argument(
+        "--chunk",
+        type=int,
+        help=f"parameter points vmapped together per call of a compiled replay "
+        f"(default {CHUNK}; --smoke: {SMOKE_CHUNK})",
+    )
+    s.add_argument(
         "--smoke",
         action="store_true",
         help=f"a quick check of the same code: {SMOKE_DURATION:g} s of closed loop, "
         "one grid point (1) per grid and relaxation 1 unless given, cruise unless given; "
-        "tolerance 1 only in the budget table, no alpha 1.8 in the shadow table",
+        "tolerance 1 only in the budget table, no alpha 1.8 in the shadow table; "
+        "no result file unless --out",
     )
+    _meta.add_out_argument(s, STEM)
     s.set_defaults(func=cmd_sweep)
     t = sub.add_parser("table", help="markdown table from ampc simulate outputs")
     t.add_argument("dirs", nargs="+")
     t.set_defaults(func=cmd_table)
     args = ap.parse_args(argv)
+    if getattr(args, "chunk", None) is not None and args.chunk < 1:
+        ap.error(f"--chunk: expected a positive integer, got {args.chunk}")
     return args.func(args)
 
 

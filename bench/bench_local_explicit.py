@@ -8,35 +8,63 @@ vehicle examples), at N_p = 10 and 20.
 1. Latency of one full control step (rebuild the model, prediction matrices,
    eq.opt_ro rho*, factorise, iterate to tolerance), compiled ahead of time,
    next to OSQP (update + solve, warm started, on the same integrated QP) and
-   Clarabel (setup + solve), as ratios. The numpy condensing OSQP needs for a
-   new model is timed separately.
+   Clarabel (setup + solve), as ratios, with each solver's first-step error
+   against Clarabel at 1e-9 printed beside its time. The numpy condensing OSQP
+   needs for a new model is timed separately. The solvers take turns at every
+   step of the drive (Local Explicit warm and cold, OSQP, Clarabel), so a
+   slower stretch of a shared machine hits all of them; Local Explicit's time
+   is the best of 3 identical calls (the call is pure), OSQP's and Clarabel's
+   one call (OSQP's internal warm start makes a repeat an easier solve).
+   Medians over the steps.
 2. Batched throughput (steps/s) of time-varying steps for batch sizes 1 to
-   100,000 (vmapped, chunked to bound memory) against a Python loop over OSQP
-   doing the same (condense + update + solve).
+   100,000 (vmapped, chunked to bound memory, ``ampc_jax.batch``) against a
+   Python loop over OSQP doing the same (condense + update + solve), on the
+   same cores: JAX gets one CPU device per core of this process's affinity.
+   The OSQP loop runs once after every batch size (its median is the peer's
+   figure), so that both sides sample the same stretch of a shared machine.
 3. Compile times, separately.
 
-Run: ``python bench/bench_local_explicit.py [--quick]``. Prints a table; also
-writes ``bench/results_local_explicit.json`` (or ``--out``).
+Solver configurations (``CONFIGS``): one compiled solver per set of static
+options (``SOLVERS``: plain ADMM, Anderson memory 3), each configuration a
+:class:`~ampc_jax.admm.SolverParams` point of it, an argument of the compiled
+step (so the five configurations compile two programs per horizon; the script
+prints the counts). "paper": eq.opt_ro's rho* and the plain iteration.
+"tuned": rho_j = (1, 0.1) x rho* for (LST, YRT) and over-relaxation 1.6,
+chosen by ``--tune`` (a grid on training drives whose seeds differ from the
+measured ones; prints the grid). "tuned, eps 1e-3": the same at eps_r = eps_s
+= 1e-3 Nm^2, whose first-step error (printed) stays below OSQP's at its eps =
+1e-6: a like-for-like accuracy. "+ Anderson 3": with Anderson acceleration of
+memory 3.
+
+Run on one core (timings are per core; OSQP is single-threaded)::
+
+    taskset -c 1 python bench/bench_local_explicit.py [--only latency|throughput]
+    python bench/bench_local_explicit.py --smoke   # no result file unless --out
+
 ``--smoke``: a quick check of the same code (N_p = 10, float64, "tuned", 5
-latency steps, batch 1 of 3-step drives, 1 OSQP drive); writes only to ``--out``.
+latency steps, batch 1 of 3-step drives, 1 OSQP drive). Result file:
+``bench/results/bench_local_explicit.json`` (``--out``; ``bench/_meta.py``); a
+partial run (``--only``, ``--horizons``, ``--max-batch``) replaces it too, and
+its recorded command line says what it holds. ``--tune`` writes only to ``--out``.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
-from pathlib import Path
 
-# One CPU device per core, so the batched part shards over both (set before JAX starts).
+# One CPU device per core this process may run on (``taskset -c 1``: one), so the
+# batched part shards over them (set before JAX starts).
 if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (
         os.environ.get("XLA_FLAGS", "")
-        + f" --xla_force_host_platform_device_count={os.cpu_count() or 1}"
+        + " --xla_force_host_platform_device_count="
+        + str(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count())
     ).strip()
 
+import _meta  # bench/_meta.py, beside this script
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -46,52 +74,42 @@ import ampc_jax  # noqa: F401  (XLA:CPU workaround before JAX starts)
 jax.config.update("jax_enable_x64", True)
 
 from ampc_jax.batch import map_scenarios  # noqa: E402
-from ampc_jax.formulations import LocalExplicit, shift_state  # noqa: E402
-from ampc_jax.integrated import (  # noqa: E402
-    CondensedQP,
-    OSQPReference,
-    condensed_qp,
-    solve_reference,
-)
-from ampc_jax.topology import Topology, make_data  # noqa: E402
-from ampc_jax.vehicle import (  # noqa: E402
-    CRUISE_AGENTS,
-    CRUISE_C,
-    CRUISE_GROUPS,
-    CRUISE_OBJECTIVES,
-    CruiseSettings,
-    Measurement,
-    VehicleParams,
-    cruise_control_model,
-)
+from ampc_jax.formulations import LocalExplicit  # noqa: E402
+from ampc_jax.problem import CondensedQP, Topology, condensed_qp, make_data  # noqa: E402
+from ampc_jax.reference import OSQPReference, solve_reference  # noqa: E402
+from ampc_jax.vehicle import CRUISE, CruiseSettings, Measurement, VehicleParams  # noqa: E402
+from ampc_jax.vehicle.cruise import cruise_control_model  # noqa: E402
 
+STEM = "bench_local_explicit"
 PARAMS = VehicleParams()
 TOL = 1e-6  # eps_r = eps_s on squared residual norms (Nm^2 scale)
+MAX_ITER = 2000
 
-# Solver configurations measured side by side. "paper": eq.opt_ro's rho* and
-# the plain iteration. "tuned": rho_j = (1, 0.1) x rho* for (LST, YRT) and
-# over-relaxation 1.6, chosen by ``--tune`` (a grid on training drives whose
-# seeds differ from the measured ones; prints the grid).
-# "tuned, eps 1e-3": the same at eps_r = eps_s = 1e-3 Nm^2, whose first-step
-# error (printed) stays below OSQP's at its eps = 1e-6: a like-for-like accuracy.
-# "+ Anderson 3": the same with Anderson acceleration of memory 3
-# (``LocalExplicit.anderson``); "paper + Anderson 3" keeps eq.opt_ro's rho*.
+# Static option sets: one compiled program each (per horizon and dtype).
+SOLVERS = {"plain": {}, "Anderson 3": {"anderson": 3}}
+# Configurations: (static option set, SolverParams point); see the module docstring.
+TUNED = {"rho": (1.0, 0.1), "relaxation": 1.6}
 CONFIGS = {
-    "paper": {},
-    "paper + Anderson 3": {"anderson": 3},
-    "tuned": {"rho_scale": (1.0, 0.1), "relaxation": 1.6},
-    "tuned + Anderson 3": {"rho_scale": (1.0, 0.1), "relaxation": 1.6, "anderson": 3},
-    "tuned, eps 1e-3": {"rho_scale": (1.0, 0.1), "relaxation": 1.6, "tol": 1e-3},
+    "paper": ("plain", {}),
+    "paper + Anderson 3": ("Anderson 3", {}),
+    "tuned": ("plain", TUNED),
+    "tuned + Anderson 3": ("Anderson 3", TUNED),
+    "tuned, eps 1e-3": ("plain", {**TUNED, "tol": 1e-3}),
 }
 
 
-def make_solver(T: Topology, config: str, tol: float = TOL) -> LocalExplicit:
-    opts = dict(CONFIGS[config])
+def make_solver(T: Topology, config: str) -> LocalExplicit:
+    return LocalExplicit(T, max_iter=MAX_ITER, **SOLVERS[CONFIGS[config][0]])
+
+
+def make_params(solver: LocalExplicit, config: str, tol: float = TOL, dtype=None):
+    opts = dict(CONFIGS[config][1])
     tol = opts.pop("tol", tol)
-    return LocalExplicit(T, max_iter=2000, tol_primal=tol, tol_dual=tol, **opts)
+    return solver.params(**opts, tol_primal=tol, tol_dual=tol, dtype=dtype)
 
 
 TUNE_SEEDS = range(1000, 1004)
+C_ROWS = tuple(jnp.asarray(CRUISE.outputs[o], float) for o in CRUISE.objectives)
 
 
 # Groups derived from the model (agent i in S_j when C_j A^k B_(i) != 0): when
@@ -99,18 +117,19 @@ TUNE_SEEDS = range(1000, 1004)
 # {DTR, RTV, FDB}; YRT's is {RTV, FDB} as in the paper. With these groups the
 # decomposition is exact and the first-step errors below are solver errors only
 # (the paper's S_LST = {DTR, FDB} drops a weak coupling; see docs/results.md).
-GROUPS = {"LST": ("DTR", "RTV", "FDB"), "YRT": CRUISE_GROUPS["YRT"]}
+GROUPS = {"LST": ("DTR", "RTV", "FDB"), "YRT": CRUISE.groups["YRT"]}
 
 
 def topology(horizon: int) -> Topology:
+    agents = CRUISE.agents
     return Topology.build(
-        n_x=3,
+        n_x=CRUISE.n_x,
         horizon=horizon,
-        agent_names=CRUISE_AGENTS,
-        agent_sizes=(1, 1, 2),
-        objective_names=CRUISE_OBJECTIVES,
-        output_sizes=(1, 1),
-        groups=[tuple(CRUISE_AGENTS.index(a) for a in GROUPS[o]) for o in CRUISE_OBJECTIVES],
+        agent_names=agents,
+        agent_sizes=CRUISE.agent_sizes,
+        objective_names=CRUISE.objectives,
+        output_sizes=tuple(len(CRUISE.outputs[o]) for o in CRUISE.objectives),
+        groups=[tuple(agents.index(a) for a in GROUPS[o]) for o in CRUISE.objectives],
     )
 
 
@@ -133,21 +152,8 @@ def drive(n: int, seed: int = 0) -> dict[str, np.ndarray]:
     }
 
 
-def operating_points(n: int, seed: int = 0) -> dict[str, np.ndarray]:
-    """Random but plausible measurements (v_x 8..25 m/s, cornering), independent cases."""
-    rng = np.random.default_rng(seed)
-    return {
-        "v_x": rng.uniform(8.0, 25.0, n),
-        "v_y": rng.uniform(-0.5, 0.5, n),
-        "r": rng.uniform(-0.4, 0.4, n),
-        "steer": rng.uniform(-0.08, 0.08, n),
-        "F_y": rng.uniform(-4000.0, 4000.0, (n, 4)),
-        "v_ref": rng.uniform(8.0, 25.0, n),
-    }
-
-
-def make_step(solver: LocalExplicit, settings: CruiseSettings):
-    T = solver.topology
+def make_data_of(T: Topology, settings: CruiseSettings):
+    """op (one operating point) -> the step's ProblemData (jittable)."""
 
     def data_of(op):
         z4 = jnp.zeros(4)
@@ -165,14 +171,13 @@ def make_step(solver: LocalExplicit, settings: CruiseSettings):
             a_y=0.0 * op["v_x"],
         )
         m = cruise_control_model(meas, op["steer"], op["v_ref"], 1.0, PARAMS, settings)
-        C = tuple(jnp.asarray(CRUISE_C[o], float) for o in CRUISE_OBJECTIVES)
         data = make_data(
             T,
             A=m.A,
             B=m.B,
             w=m.w,
             x0=m.x0,
-            C=C,
+            C=C_ROWS,
             Q=settings.Q(),
             ref=m.ref,
             R=settings.R(),
@@ -181,11 +186,7 @@ def make_step(solver: LocalExplicit, settings: CruiseSettings):
         )
         return jax.tree.map(lambda x: jnp.asarray(x, op["v_x"].dtype), data)
 
-    def full(op):
-        res = solver.solve(data_of(op))
-        return res.u0, res.iterations
-
-    return data_of, full
+    return data_of
 
 
 def index(ops, i):
@@ -204,81 +205,112 @@ def median_time(fn, args_list, repeats=3):
     return float(np.median(times))
 
 
-def latency(horizon: int, n_steps: int, config: str = "tuned") -> dict:
+def latency(horizon: int, n_steps: int, configs: list[str]) -> tuple[list[dict], dict]:
+    """One row per configuration; and the compile counts and times of the
+    static option sets used (each compiled once for every configuration)."""
     settings = CruiseSettings(horizon=horizon)
     T = topology(horizon)
-    solver = make_solver(T, config)
-    data_of, _ = make_step(solver, settings)
+    data_of = make_data_of(T, settings)
     ops = drive(n_steps, seed=horizon)
     op0 = index(ops, 0)
-
-    def cold(op):
-        return solver.solve(data_of(op))
-
-    def warm(op, state):
-        return solver.solve(data_of(op), None, shift_state(state))
-
-    t0 = time.perf_counter()
-    cold_c = jax.jit(cold).lower(op0).compile()
-    compile_s = time.perf_counter() - t0
-    first = cold_c(op0)
-    warm_c = jax.jit(warm).lower(op0, first.state).compile()
     data_fn = jax.jit(data_of).lower(op0).compile()
-
-    # Warm-started sequence (each step starts from the previous step's shifted iterate)
-    states, res_warm, t_warm = [first.state], [], []
-    for i in range(n_steps):
-        op = index(ops, i)
-        best = np.inf
-        for _ in range(3):
-            t0 = time.perf_counter()
-            r = jax.block_until_ready(warm_c(op, states[-1]))
-            best = min(best, time.perf_counter() - t0)
-        t_warm.append(best)
-        res_warm.append(r)
-        states.append(r.state)
-    t_cold = median_time(cold_c, [(index(ops, i),) for i in range(n_steps)])
-    it_cold = [int(cold_c(index(ops, i)).iterations) for i in range(n_steps)]
-    it_warm = [int(r.iterations) for r in res_warm]
-
     datas = [data_fn(index(ops, i)) for i in range(n_steps)]
     cond_fn = jax.jit(lambda d: condensed_qp(T, d)).lower(datas[0]).compile()
     qps = [CondensedQP(*(np.asarray(x) for x in cond_fn(d))) for d in datas]
     t_condense = median_time(cond_fn, [(d,) for d in datas])
-    ref = [solve_reference(T, d, "clarabel") for d in datas]
-    t_clarabel = float(np.median([r.state for r in ref]))
 
-    osqp = OSQPReference(T, datas[0], eps=1e-6)
-    osqp.solve()
-    t_osqp, err_osqp, err_jax = [], [], []
-    for i in range(n_steps):
-        t0 = time.perf_counter()
-        osqp.update_qp(qps[i])
-        res = osqp.solve()
-        t_osqp.append(time.perf_counter() - t0)
-        err_osqp.append(np.max(np.abs(res.u[0] - ref[i].u[0])))
-        err_jax.append(np.max(np.abs(np.asarray(res_warm[i].u0) - ref[i].u[0])))
-    t_osqp = float(np.median(t_osqp))
-    t_jax = float(np.median(t_warm))
-    return {
-        "config": config,
-        "horizon": horizon,
-        "steps": n_steps,
-        "jax_full_step_warm_us": t_jax * 1e6,
-        "jax_full_step_cold_us": t_cold * 1e6,
-        "jax_iterations_warm_median": float(np.median(it_warm)),
-        "jax_iterations_warm_max": int(np.max(it_warm)),
-        "jax_iterations_cold_median": float(np.median(it_cold)),
-        "jax_compile_s": compile_s,
-        "osqp_update_solve_us": t_osqp * 1e6,
-        "condense_us": t_condense * 1e6,
-        "clarabel_setup_solve_us": t_clarabel * 1e6,
-        "ratio_jax_over_osqp": t_jax / t_osqp,
-        "ratio_jax_over_osqp_with_condense": t_jax / (t_osqp + t_condense),
-        "ratio_jax_over_clarabel": t_jax / t_clarabel,
-        "max_u0_err_jax_Nm": float(np.max(err_jax)),
-        "max_u0_err_osqp_Nm": float(np.max(err_osqp)),
+    programs: dict[str, dict] = {}  # static option set -> its compiled steps
+
+    def program(key: str, solver: LocalExplicit, params) -> dict:
+        if key not in programs:
+
+            def cold(op, p):
+                return solver.solve(data_of(op), p)
+
+            def warm(op, p, state):
+                return solver.solve(data_of(op), p, solver.shift(state))
+
+            # ahead-of-time compiled: every configuration of this option set calls
+            # these two programs with its own SolverParams (``programs`` counts them)
+            t0 = time.perf_counter()
+            cold_c = jax.jit(cold).lower(op0, params).compile()
+            compile_s = time.perf_counter() - t0
+            first = cold_c(op0, params)
+            warm_c = jax.jit(warm).lower(op0, params, first.state).compile()
+            programs[key] = {"cold": cold_c, "warm": warm_c, "programs": 2, "compile_s": compile_s}
+        return programs[key]
+
+    rows = []
+    for config in configs:
+        solver = make_solver(T, config)
+        params = make_params(solver, config)
+        prog = program(CONFIGS[config][0], solver, params)
+        cold_c, warm_c = prog["cold"], prog["warm"]
+        first = cold_c(op0, params)
+        osqp = OSQPReference(T, datas[0], eps=1e-6)
+        osqp.solve()
+        # The drive in order, every solver in turn at every step: Local Explicit
+        # warm started from its previous step's shifted iterate and cold, OSQP
+        # (update + solve, warm started internally), Clarabel (setup + solve, the
+        # reference optimum)
+        states, it_warm, it_cold = [first.state], [], []
+        t_warm, t_cold, t_osqp, t_clarabel, err_osqp, err_jax = [], [], [], [], [], []
+        for i in range(n_steps):
+            op = index(ops, i)
+            best = np.inf
+            for _ in range(3):
+                t0 = time.perf_counter()
+                r = jax.block_until_ready(warm_c(op, params, states[-1]))
+                best = min(best, time.perf_counter() - t0)
+            t_warm.append(best)
+            it_warm.append(int(r.iterations))
+            states.append(r.state)
+            best = np.inf
+            for _ in range(3):
+                t0 = time.perf_counter()
+                rc = jax.block_until_ready(cold_c(op, params))
+                best = min(best, time.perf_counter() - t0)
+            t_cold.append(best)
+            it_cold.append(int(rc.iterations))
+            t0 = time.perf_counter()
+            osqp.update_qp(qps[i])
+            res = osqp.solve()
+            t_osqp.append(time.perf_counter() - t0)
+            ref = solve_reference(T, datas[i], "clarabel")
+            t_clarabel.append(ref.state)  # its setup + solve, timed inside
+            err_osqp.append(np.max(np.abs(res.u[0] - ref.u[0])))
+            err_jax.append(np.max(np.abs(np.asarray(r.u0) - ref.u[0])))
+        t_osqp_med = float(np.median(t_osqp))
+        t_jax = float(np.median(t_warm))
+        rows.append(
+            {
+                "config": config,
+                "solver": CONFIGS[config][0],
+                "params": {
+                    k: list(v) if isinstance(v, tuple) else v for k, v in CONFIGS[config][1].items()
+                },
+                "horizon": horizon,
+                "steps": n_steps,
+                "jax_full_step_warm_us": t_jax * 1e6,
+                "jax_full_step_cold_us": float(np.median(t_cold)) * 1e6,
+                "jax_iterations_warm_median": float(np.median(it_warm)),
+                "jax_iterations_warm_max": int(np.max(it_warm)),
+                "jax_iterations_cold_median": float(np.median(it_cold)),
+                "jax_compile_s": prog["compile_s"],
+                "osqp_update_solve_us": t_osqp_med * 1e6,
+                "condense_us": t_condense * 1e6,
+                "clarabel_setup_solve_us": float(np.median(t_clarabel)) * 1e6,
+                "ratio_jax_over_osqp": t_jax / t_osqp_med,
+                "ratio_jax_over_osqp_with_condense": t_jax / (t_osqp_med + t_condense),
+                "ratio_jax_over_clarabel": t_jax / float(np.median(t_clarabel)),
+                "max_u0_err_jax_Nm": float(np.max(err_jax)),
+                "max_u0_err_osqp_Nm": float(np.max(err_osqp)),
+            }
+        )
+    compiles = {
+        key: {"programs": p["programs"], "compile_s": p["compile_s"]} for key, p in programs.items()
     }
+    return rows, compiles
 
 
 def throughput(
@@ -297,14 +329,16 @@ def throughput(
     settings = CruiseSettings(horizon=horizon)
     T = topology(horizon)
     tol = TOL if dtype == "float64" else 1e-4  # float32 resolves about 1e-2 Nm
-    solver = make_solver(T, config, tol)
-    data_of, _ = make_step(solver, settings)
+    solver = make_solver(T, config)
+    params = make_params(solver, config, tol, dtype=dtype)
+    data_of = make_data_of(T, settings)
 
-    def one_drive(ops):
-        first = solver.solve(data_of(index(ops, 0)))
+    def one_drive(case):
+        ops, p = case
+        first = solver.solve(data_of(index(ops, 0)), p)
 
         def body(state, op):
-            r = solver.solve(data_of(op), None, shift_state(state))
+            r = solver.solve(data_of(op), p, solver.shift(state))
             return r.state, (r.u0, r.iterations)
 
         _, (u0, its) = jax.lax.scan(body, first.state, ops)
@@ -317,80 +351,100 @@ def throughput(
     out = {
         "config": config,
         "dtype": dtype,
+        "tolerance": tol,
         "horizon": horizon,
         "devices": len(jax.devices()),
         "vmap_chunk": vmap_chunk,
         "chunk": chunk,
         "steps_per_drive": steps,
         "jax_steps_per_s": {},
+        "jax_cases_timed": {},
         "compile_s": {},
         "iterations_mean": {},
     }
 
-    def batched(ops):
+    def batched(ops, p):
         # chunks of vmap_chunk drives, each chunk stopping at its own slowest case,
-        # the batch split over all devices (ampc_jax.batch)
-        return map_scenarios(one_drive, ops, chunk=vmap_chunk)
+        # the batch split over all devices (ampc_jax.batch); the parameters go with
+        # every case (broadcast), an argument of the one compiled program
+        n = next(iter(ops.values())).shape[0]
+        pb = jax.tree.map(lambda x: jnp.broadcast_to(x, (n, *x.shape)), p)
+        return map_scenarios(one_drive, (ops, pb), chunk=vmap_chunk)
 
-    compiled = {}
-    for n in sizes:
-        b = min(n, chunk)
-        ops = drives(min(n, chunk), seed=n)  # one chunk of drives, reused for every chunk
-        if b not in compiled:
-            t0 = time.perf_counter()
-            compiled[b] = jax.jit(batched).lower(ops).compile()
-            out["compile_s"][b] = time.perf_counter() - t0
-        fn = compiled[b]
-        _, its = jax.block_until_ready(fn(ops))
-        t0 = time.perf_counter()
-        for _ in range(max(1, n // b)):
-            jax.block_until_ready(fn(ops))
-        dt = time.perf_counter() - t0
-        out["jax_steps_per_s"][n] = max(1, n // b) * b * (steps + 1) / dt
-        out["iterations_mean"][n] = float(np.mean(its))
-        print(
-            f"  N_p={horizon} {dtype} batch {n:>6}: {out['jax_steps_per_s'][n]:10.0f} steps/s "
-            f"(mean iterations {out['iterations_mean'][n]:.0f})",
-            flush=True,
-        )
-
-    # The same drives through OSQP in a Python loop: new model -> condense -> update -> solve
+    # The peer: the same kind of drives through OSQP in a Python loop (new model ->
+    # condense -> update -> solve), timed after every batch size, so that its
+    # runs spread over the JAX runs' time on a shared machine; median over them
     data_fn = jax.jit(data_of)
     cond = jax.jit(lambda op: condensed_qp(T, data_of(op)))
-    ops = {k: v.astype(np.float64) for k, v in drives(osqp_runs, seed=12345).items()}
-    osqp = OSQPReference(T, data_fn(index(index(ops, 0), 0)), eps=1e-6)
-    jax.block_until_ready(cond(index(index(ops, 0), 0)))
-    t_with = t_without = 0.0
-    for k in range(osqp_runs):
-        run = index(ops, k)
-        qps = []
+    osqp_ops = {k: v.astype(np.float64) for k, v in drives(osqp_runs, seed=12345).items()}
+    osqp = OSQPReference(T, data_fn(index(index(osqp_ops, 0), 0)), eps=1e-6)
+    jax.block_until_ready(cond(index(index(osqp_ops, 0), 0)))
+
+    def osqp_loop() -> tuple[float, float]:
+        """(steps/s with condensing, without) of one pass over the OSQP drives."""
+        t_with = t_without = 0.0
+        for k in range(osqp_runs):
+            run = index(osqp_ops, k)
+            qps = []
+            t0 = time.perf_counter()
+            for i in range(steps):
+                qp = CondensedQP(*(np.asarray(x) for x in cond(index(run, i))))
+                qps.append(qp)
+                osqp.update_qp(qp)
+                osqp.solve()
+            t_with += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            for qp in qps:
+                osqp.update_qp(qp)
+                osqp.solve()
+            t_without += time.perf_counter() - t0
+        return osqp_runs * steps / t_with, osqp_runs * steps / t_without
+
+    batched_jit = jax.jit(batched)
+    compiled = {}  # chunk size b -> its ahead-of-time compiled program
+    osqp_passes = []
+    for n in sizes:
+        b = min(n, chunk)
+        ops = drives(b, seed=n)  # one chunk of drives, reused for every chunk
+        if b not in compiled:
+            t0 = time.perf_counter()
+            compiled[b] = batched_jit.lower(ops, params).compile()
+            out["compile_s"][b] = time.perf_counter() - t0
+        fn = compiled[b]
+        _, its = jax.block_until_ready(fn(ops, params))
+        calls = max(1, n // b)
         t0 = time.perf_counter()
-        for i in range(steps):
-            qp = CondensedQP(*(np.asarray(x) for x in cond(index(run, i))))
-            qps.append(qp)
-            osqp.update_qp(qp)
-            osqp.solve()
-        t_with += time.perf_counter() - t0
-        t0 = time.perf_counter()
-        for qp in qps:
-            osqp.update_qp(qp)
-            osqp.solve()
-        t_without += time.perf_counter() - t0
-    out["osqp_loop_steps_per_s"] = osqp_runs * steps / t_with
-    out["osqp_loop_steps_per_s_without_condense"] = osqp_runs * steps / t_without
+        for _ in range(calls):
+            jax.block_until_ready(fn(ops, params))
+        dt = time.perf_counter() - t0
+        out["jax_cases_timed"][n] = calls * b
+        out["jax_steps_per_s"][n] = calls * b * (steps + 1) / dt
+        out["iterations_mean"][n] = float(np.mean(its))
+        osqp_passes.append(osqp_loop())
+        print(
+            f"  N_p={horizon} {dtype} batch {n:>6}: {out['jax_steps_per_s'][n]:10.0f} steps/s "
+            f"(mean iterations {out['iterations_mean'][n]:.0f}); OSQP loop right after: "
+            f"{osqp_passes[-1][0]:.0f} steps/s",
+            flush=True,
+        )
+    out["osqp_loop_passes_steps_per_s"] = [p[0] for p in osqp_passes]
+    out["osqp_loop_steps_per_s"] = float(np.median([p[0] for p in osqp_passes]))
+    out["osqp_loop_steps_per_s_without_condense"] = float(np.median([p[1] for p in osqp_passes]))
     best = max(out["jax_steps_per_s"].values())
     out["ratio_best_jax_over_osqp_loop"] = best / out["osqp_loop_steps_per_s"]
     out["ratio_best_jax_over_osqp_loop_without_condense"] = (
         best / out["osqp_loop_steps_per_s_without_condense"]
     )
+    out["programs_compiled"] = len(compiled)  # one per distinct chunk size b
     return out
 
 
 def tune(horizon: int, n_steps: int = 40) -> dict:
-    """Grid over rho_scale (per objective) and relaxation on training drives.
+    """Grid over rho (factor per objective) and relaxation on training drives.
 
     The drives' seeds (``TUNE_SEEDS``) differ from the measured ones, so the
-    chosen configuration is not fitted to the benchmark's own data.
+    chosen configuration is not fitted to the benchmark's own data. Every grid
+    point is a SolverParams point of one compiled cold and one warm step.
     """
     settings = CruiseSettings(horizon=horizon)
     T = topology(horizon)
@@ -399,21 +453,18 @@ def tune(horizon: int, n_steps: int = 40) -> dict:
         for b in (0.03, 0.1, 0.3, 1.0):
             for alpha in (1.0, 1.6):
                 grid.append(((a, b), alpha))
-    base = LocalExplicit(T, max_iter=3000, tol_primal=TOL, tol_dual=TOL)
-    data_of, _ = make_step(base, settings)
-    data_fn = jax.jit(data_of)
+    solver = LocalExplicit(T, max_iter=3000)
+    data_fn = jax.jit(make_data_of(T, settings))
     datas = [data_fn(index(drive(n_steps, seed=s), i)) for s in TUNE_SEEDS for i in range(n_steps)]
+    cold = jax.jit(solver.solve)
+    warm = jax.jit(lambda d, p, st: solver.solve(d, p, solver.shift(st)))
     out = {}
     print(f"N_p={horizon}: median warm iterations on training drives (seeds {list(TUNE_SEEDS)})")
     for scale, alpha in grid:
-        solver = LocalExplicit(
-            T, max_iter=3000, tol_primal=TOL, tol_dual=TOL, rho_scale=scale, relaxation=alpha
-        )
-        cold = jax.jit(solver.solve)
-        warm = jax.jit(lambda d, st, solver=solver: solver.solve(d, None, shift_state(st)))
+        p = solver.params(rho=scale, relaxation=alpha, tol_primal=TOL, tol_dual=TOL)
         its, state = [], None
         for k, d in enumerate(datas):
-            r = cold(d) if k % n_steps == 0 else warm(d, state)
+            r = cold(d, p) if k % n_steps == 0 else warm(d, p, state)
             state = r.state
             if k % n_steps:
                 its.append(int(r.iterations))
@@ -421,24 +472,23 @@ def tune(horizon: int, n_steps: int = 40) -> dict:
         print(f"  rho_scale {scale}, relaxation {alpha}: {np.median(its):.0f}", flush=True)
     best = min(out, key=out.get)
     print(f"  best: {best} ({out[best]:.0f} iterations)")
+    print(
+        f"  [compiled: cold step {cold._cache_size()}, warm step {warm._cache_size()} "
+        f"for {len(grid)} grid points]"
+    )
     return out
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="small sizes (smoke run)")
+    ap.add_argument("--quick", action="store_true", help="small sizes (50 steps, batch <= 1000)")
     ap.add_argument(
         "--smoke",
         action="store_true",
         help="smallest sizes, a quick check of the code (N_p = 10, float64, 'tuned' unless "
-        "given; 5 latency steps, batch 1, 3-step drives); writes JSON only with --out",
+        "given; 5 latency steps, batch 1, 3-step drives); no result file unless --out",
     )
-    ap.add_argument(
-        "--out",
-        type=Path,
-        default=None,
-        help="the results JSON (default bench/results_local_explicit[_SUFFIX].json)",
-    )
+    _meta.add_out_argument(ap, STEM)
     ap.add_argument(
         "--chunk", type=int, default=8192, help="drives per compiled call (memory bound)"
     )
@@ -448,7 +498,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--max-batch", type=int, default=100_000, help="largest batch size (default 100,000)"
     )
-    ap.add_argument("--tune", action="store_true", help="only run the rho_scale/relaxation grid")
+    ap.add_argument("--tune", action="store_true", help="only run the rho/relaxation grid")
     ap.add_argument("--only", choices=("latency", "throughput"), help="run one of the two parts")
     ap.add_argument(
         "--horizons", default=None, help="comma-separated N_p values (default 10,20; --smoke 10)"
@@ -495,9 +545,11 @@ def main(argv: list[str] | None = None) -> int:
         if name not in CONFIGS:
             ap.error(f"--configs: unknown configuration {name!r}; expected one of {list(CONFIGS)}")
     if args.tune:
-        for horizon in (10, 20):
-            tune(horizon)
+        run = _meta.Run(args.out)  # the grid is its own experiment: written only with --out
+        run.results = {"tune": {h: tune(h) for h in (10, 20)}}
+        run.finish()
         return 0
+    run = _meta.Run(_meta.output_path(args, STEM))
     steps = 5 if args.smoke else 50 if args.quick else 200
     if args.smoke:
         sizes = [1]
@@ -507,24 +559,30 @@ def main(argv: list[str] | None = None) -> int:
         sizes = [1, 10, 100, 1000, 10_000, 100_000]
     sizes = [n for n in sizes if n <= args.max_batch]
     results = {
-        "jax": jax.__version__,
         "devices": str(jax.devices()),
         "dispatch": "synchronous" if args.sync_dispatch else "asynchronous (JAX's default)",
-        "configs": {k: {kk: str(v) for kk, v in c.items()} for k, c in CONFIGS.items()},
+        "tolerance": TOL,
+        "max_iter": MAX_ITER,
+        "solvers": SOLVERS,
+        "configs": {k: {"solver": s, **p} for k, (s, p) in CONFIGS.items()},
         "latency": [],
+        "latency_compiles": {},
         "throughput": [],
     }
     print(
         f"jax {jax.__version__} on {jax.devices()}; tolerance eps_r = eps_s = {TOL}; "
         f"dispatch {results['dispatch']}"
     )
-    print(f"configurations: {CONFIGS}")
+    print(f"solvers (static options, max_iter {MAX_ITER}): {SOLVERS}")
+    print(f"configurations (solver, SolverParams): {CONFIGS}")
     horizons = [int(h) for h in args.horizons.split(",")]
     dtypes = args.dtypes.split(",")
     for horizon in horizons if args.only != "throughput" else ():
-        for config in configs:
-            lat = latency(horizon, steps, config)
-            results["latency"].append(lat)
+        rows, compiles = latency(horizon, steps, configs)
+        results["latency"] += rows
+        results["latency_compiles"][horizon] = compiles
+        for lat in rows:
+            config = lat["config"]
             print(
                 f"N_p={horizon} [{config}]: full step warm {lat['jax_full_step_warm_us']:.0f} us "
                 f"(iterations median {lat['jax_iterations_warm_median']:.0f}, max {lat['jax_iterations_warm_max']}), "
@@ -540,6 +598,15 @@ def main(argv: list[str] | None = None) -> int:
                 f"OSQP {lat['max_u0_err_osqp_Nm']:.2e} Nm; compile {lat['jax_compile_s']:.2f} s",
                 flush=True,
             )
+        print(
+            f"N_p={horizon}: compiled "
+            + ", ".join(
+                f"{c['programs']} programs (cold and warm step) for solver {k!r}"
+                for k, c in compiles.items()
+            )
+            + f" for {len(rows)} configurations",
+            flush=True,
+        )
     for dtype in dtypes if args.only != "latency" else ():
         for horizon in horizons:
             thr = throughput(
@@ -561,17 +628,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"compile {thr['compile_s']}",
                 flush=True,
             )
-    suffix = f"_{args.only}" if args.only else ""
-    if args.horizons != "10,20" or args.dtypes != "float64,float32":
-        suffix += "_" + args.horizons.replace(",", "-") + "_" + args.dtypes.replace(",", "-")
-    if args.throughput_config != "tuned" and args.only != "latency":
-        suffix += "_" + args.throughput_config.replace(" + ", "_").replace(" ", "_")
-    path = args.out or Path(__file__).with_name(f"results_local_explicit{suffix}.json")
-    if args.smoke and args.out is None:
-        print("smoke run: results not written (--out PATH writes them)")
-        return 0
-    path.write_text(json.dumps(results, indent=1, default=str))
-    print(f"wrote {path}")
+    run.results = results
+    run.finish()
     return 0
 
 

@@ -1,6 +1,6 @@
 """Local Explicit against general-purpose JAX QP solvers on the closed loop's integrated MPC.
 
-The closed-loop r_time (eq.t_ratio, ``simulation.replay_timing``) compares
+The closed-loop r_time (eq.t_ratio, ``ampc_jax.closed_loop.replay_timing``) compares
 Local Explicit with IntegratedADMM: the same explicit ADMM machinery applied
 to the undecomposed problem, the tightest peer this package has. The paper's
 integrated MPC was solved by a general-purpose QP solver. This script adds
@@ -16,6 +16,8 @@ functions, timed interleaved step by step (median of ``--repeats`` calls,
 
 * Local Explicit with the warm state it had in the loop (the controller);
 * IntegratedADMM warm started from its own previous solution (the r_time peer);
+  both with their :class:`~ampc_jax.admm.SolverParams` as an argument, as
+  ``replay_timing`` calls them;
 * ``jaxopt.BoxOSQP`` (dense "lu" linear solves; its default "cg" needed
   4000 iterations at tol 1e-3 on the cruise run), for each ``tol`` of
   ``--osqp-tols``: cold at the first step, then warm started from its own
@@ -26,13 +28,17 @@ functions, timed interleaved step by step (median of ``--repeats`` calls,
   e_sub, not from the number.
 
 e_sub is |u0 - shadow optimum| (Nm), the loop's shadow IntegratedADMM at
-1e-8 Nm^2. Ratios are medians over the steps of per-step time ratios.
+1e-8 Nm^2: every time is printed beside its accuracy and iteration counts.
+Ratios are medians over the steps of per-step time ratios (the solvers take
+turns at every step, so a slower stretch of a shared machine hits all alike).
 
 Needs the ``bench`` extra (``pip install -e '.[bench]'``, which installs
 jaxopt). Run pinned to one core::
 
     timeout 1800 taskset -c 1 python bench/bench_qp_peers.py
-    python bench/bench_qp_peers.py --smoke   # a quick check: 1 s of cruise, tol 1e-3
+    python bench/bench_qp_peers.py --smoke   # 1 s of cruise, tol 1e-3; no result file
+
+Result file: ``bench/results/bench_qp_peers.json`` (``--out``; ``bench/_meta.py``).
 """
 
 from __future__ import annotations
@@ -42,9 +48,12 @@ import sys
 import time
 from typing import Any
 
+import _meta  # bench/_meta.py, beside this script
 import numpy as np
 
 import ampc_jax  # noqa: F401  (XLA:CPU workaround before JAX starts)
+
+STEM = "bench_qp_peers"
 
 METHODS = ("lu",)  # "cg" needed 4000 iterations at tol 1e-3 on the cruise run (3.8 ms a step)
 SCENARIOS = ("cruise_lane_change", "stability_launch_brake", "stability_dlc")
@@ -70,33 +79,37 @@ def run_scenario(
     import jax.numpy as jnp
     import jaxopt
 
-    from ampc_jax.formulations import cold_state, shift_horizon, shift_state
-    from ampc_jax.integrated import condensed_qp, merged_topology
-    from ampc_jax.simulation import (
-        _input_columns,
-        build_topology,
-        integrated_solver,
-        local_explicit_solver,
-        simulate,
-    )
+    from ampc_jax.admm import shift_horizon
+    from ampc_jax.closed_loop import simulate
+    from ampc_jax.formulations import IntegratedADMM, LocalExplicit
+    from ampc_jax.problem import condensed_qp
 
     res = simulate(name, duration=duration)
     cfg, log = res.config, res.log
-    T, agent_idx, _ = build_topology(cfg)
-    cols = _input_columns(cfg, agent_idx)
-    shadow = np.asarray(log.u_shadow)[:, cols]
+    ctrl = cfg.controller()
+    T = ctrl.topology
+    shadow = np.asarray(log.u_shadow)[:, ctrl.input_columns]
     K = int(np.shape(log.t)[0])
     step = lambda x, k: jax.device_put(jax.tree.map(lambda a: np.asarray(a[k]), x))  # noqa: E731
     datas = [step(log.data, k) for k in range(K)]
     warms = [step(log.warm, k) for k in range(K)]
     n_u = shadow.shape[1]
 
-    le = local_explicit_solver(cfg, T)
-    ia = integrated_solver(cfg, T, max_iter=max(cfg.max_iter, 2000))
+    dtype = datas[0].A.dtype
+    le = LocalExplicit(T, max_iter=cfg.max_iter, anderson=cfg.anderson)
+    p_le = cfg.loop_params(dtype).controller.solver
+    ia = IntegratedADMM(T, max_iter=max(cfg.max_iter, 2000), anderson=cfg.anderson)
+    p_ia = ia.params(
+        rho=cfg.integrated_rho_scale,
+        relaxation=cfg.relaxation,
+        tol_primal=cfg.tol_primal,
+        tol_dual=cfg.tol_dual,
+        dtype=dtype,
+    )
     shift = cfg.warm_shift
-    cold_i = cold_state(merged_topology(T), datas[0].A.dtype)
-    f_le = jax.jit(le.solve).lower(datas[0], None, warms[0]).compile()
-    f_ia = jax.jit(ia.solve).lower(datas[0], None, cold_i).compile()
+    cold_i = ia.cold_state(dtype)
+    f_le = jax.jit(le.solve).lower(datas[0], p_le, warms[0]).compile()
+    f_ia = jax.jit(ia.solve).lower(datas[0], p_ia, cold_i).compile()
 
     def osqp_fn(solver: Any) -> Any:
         def solve(d: Any, init: Any) -> Any:
@@ -140,12 +153,12 @@ def run_scenario(
     w_i = cold_i
     osqp_warm = {label: cold for label, (_, cold) in peers.items()}
     for k in range(K):
-        t, r = _timed(f_le, datas[k], None, warms[k], repeats=repeats)
+        t, r = _timed(f_le, datas[k], p_le, warms[k], repeats=repeats)
         record("Local Explicit", t, r.u0, r.iterations)
-        t, r = _timed(f_ia, datas[k], None, w_i, repeats=repeats)
+        t, r = _timed(f_ia, datas[k], p_ia, w_i, repeats=repeats)
         record("IntegratedADMM", t, r.u0, r.iterations)
         ok = (int(r.status) <= 1) and bool(np.all(np.isfinite(np.asarray(r.u0))))
-        w_i = shift_state(r.state, shift) if (ok and cfg.warm_start) else cold_i
+        w_i = ia.shift(r.state, shift) if (ok and cfg.warm_start) else cold_i
         lb0, ub0 = np.asarray(datas[k].lb[0]), np.asarray(datas[k].ub[0])
         for label, (fn, cold) in peers.items():
             t, (params, its) = _timed(fn, datas[k], osqp_warm[label], repeats=repeats)
@@ -191,6 +204,7 @@ def main(argv: list[str] | None = None) -> int:
         help=f"a quick check of the same code: {SMOKE_DURATION:g} s of closed loop, "
         "with the smoke defaults above",
     )
+    _meta.add_out_argument(ap, STEM)
     args = ap.parse_args(argv)
     if args.scenarios is None:
         args.scenarios = list(SCENARIOS[:1] if args.smoke else SCENARIOS)
@@ -207,20 +221,30 @@ def main(argv: list[str] | None = None) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    run = _meta.Run(_meta.output_path(args, STEM))
     print(f"jax {jax.__version__}; one step per call, medians over the logged steps\n")
     print(
         "| scenario | solver | step median (us) | **r_time = t_LE / t_solver** "
         "| e_sub p95 / max (Nm) | iterations p50 / p95 |"
     )
     print("| --- | --- | --- | --- | --- | --- |")
+    rows = []
     for name in args.scenarios:
         for r in run_scenario(name, args.osqp_tols, args.repeats, duration):
+            rows.append(r)
             print(
                 f"| {r['scenario']} | {r['solver']} | {r['t_median_us']:.0f} "
                 f"| {r['le_over_solver']:.3g} | {r['e_sub_p95']:.3g} / {r['e_sub_max']:.3g} "
                 f"| {r['it_p50']:.0f} / {r['it_p95']:.0f} |",
                 flush=True,
             )
+    run.results = {
+        "osqp_tols": args.osqp_tols,
+        "repeats": args.repeats,
+        "duration_s": duration,
+        "rows": rows,
+    }
+    run.finish()
     return 0
 
 

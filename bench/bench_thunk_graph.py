@@ -3,8 +3,8 @@
 XLA:CPU's thunk executor (jaxlib 0.10) walks a program's thunk graph with a
 FIFO ready queue and hands half of the ready thunks to its intra-op thread
 pool whenever more than 8 are ready at once (``ExecuteSession::kSplitThreshold``),
-then waits for them: 10 to 40 us per control step where it was seen (README,
-"Known issues"). Whether a step crosses that line depends on the shape of its
+then waits for them: 10 to 40 us per control step where it was seen
+(docs/known-issues.md). Whether a step crosses that line depends on the shape of its
 graph, so small code changes can flip it.
 
 This script compiles the closed-loop controller step (``solve`` on logged
@@ -14,14 +14,15 @@ each in a child process with ``TF_CPP_VMODULE=thunk_executor=6`` so that XLA
 prints the top-level thunk graph; it then replays the executor's FIFO queue on
 that graph and prints the most thunks waiting at once::
 
-    python bench/bench_thunk_graph.py            # all four
-    python bench/bench_thunk_graph.py --anderson 0
-    python bench/bench_thunk_graph.py --smoke   # the cruise example only
+    taskset -c 1 python bench/bench_thunk_graph.py            # all four
+    taskset -c 1 python bench/bench_thunk_graph.py --anderson 0
+    python bench/bench_thunk_graph.py --smoke   # the cruise example only; no result file
 
 A "max waiting" above 8 means the step splits onto the pool. The replay is a
 model of ``ThunkExecutor::Execute`` (jaxlib 0.10, XLA's
 ``backends/cpu/runtime/thunk_executor.cc``) with every thunk completing
 inline; it agreed with ``jax.profiler`` traces on the stability example.
+Result file: ``bench/results/bench_thunk_graph.json`` (``--out``; ``bench/_meta.py``).
 """
 
 from __future__ import annotations
@@ -32,6 +33,9 @@ import re
 import subprocess
 import sys
 
+import _meta  # bench/_meta.py, beside this script
+
+STEM = "bench_thunk_graph"
 SCENARIOS = ("cruise_lane_change", "stability_dlc")
 
 CHILD = r"""
@@ -115,7 +119,10 @@ def main() -> None:
     ap.add_argument(
         "--smoke", action="store_true", help=f"a quick check: {SCENARIOS[0]} (both solvers) only"
     )
+    _meta.add_out_argument(ap, STEM)
     args = ap.parse_args()
+    run = _meta.Run(_meta.output_path(args, STEM))
+    rows = []
     env = dict(os.environ, TF_CPP_VMODULE="thunk_executor=6", TF_CPP_MIN_LOG_LEVEL="0")
     print(f"{'scenario':<24}{'solver':<8}{'thunks':>7}{'sources':>9}{'max waiting':>13}  verdict")
     for scenario in SCENARIOS[:1] if args.smoke else SCENARIOS:
@@ -138,7 +145,20 @@ def main() -> None:
             if len(nodes) < n:
                 verdict += f" (XLA's log cut the graph after {len(nodes)} thunks)"
             name = "LE" if kind == "le" else "IA"
-            print(f"{scenario:<24}{name:<8}{n:>7}{sources:>9}{worst:>13}  {verdict}")
+            print(f"{scenario:<24}{name:<8}{n:>7}{sources:>9}{worst:>13}  {verdict}", flush=True)
+            rows.append(
+                {
+                    "scenario": scenario,
+                    "solver": name,
+                    "thunks": n,
+                    "thunks_read": len(nodes),
+                    "sources": sources,
+                    "max_waiting": worst,
+                    "splits": worst > 8,
+                }
+            )
+    run.results = {"anderson": args.anderson, "split_threshold": 8, "rows": rows}
+    run.finish()
 
 
 if __name__ == "__main__":
