@@ -182,9 +182,6 @@ def cruise_wheel_torques(u: tuple[Array, ...]) -> Array:
 class CruiseControl(VehicleExample):
     """The cruise-control example (see the module docstring)."""
 
-    def weights(self, settings: Any) -> tuple[tuple[Array, ...], tuple[Array, ...]]:
-        return settings.Q(), settings.R()
-
     def model(self, meas, steer, driver_torque, v_ref, mu, vehicle, settings) -> ControlModel:
         return cruise_control_model(meas, steer, v_ref, mu, vehicle, settings)
 

@@ -81,8 +81,9 @@ class VehicleExample:
         return self.settings_type(**overrides).validate()
 
     def weights(self, settings: ExampleSettings) -> tuple[tuple[Array, ...], tuple[Array, ...]]:
-        """(Q_j per objective, R_(i) per agent), in the example's orders."""
-        raise NotImplementedError
+        """(Q_j per objective, R_(i) per agent), in the example's orders: by default
+        the settings' own ``Q()`` and ``R()``."""
+        return settings.Q(), settings.R()
 
     def model(
         self,

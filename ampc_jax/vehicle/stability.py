@@ -213,9 +213,6 @@ def stability_wheel_torques(u: tuple[Array, ...], driver_torque: Array) -> Array
 class StabilityControl(VehicleExample):
     """The holistic stability example (see the module docstring)."""
 
-    def weights(self, settings: Any) -> tuple[tuple[Array, ...], tuple[Array, ...]]:
-        return settings.Q(), settings.R()
-
     def model(self, meas, steer, driver_torque, v_ref, mu, vehicle, settings) -> ControlModel:
         return stability_control_model(meas, steer, driver_torque, mu, vehicle, settings)
 
