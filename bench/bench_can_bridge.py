@@ -26,11 +26,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
 import threading
 import time
+
+import _meta  # bench/_meta.py, beside this script
 
 import can_bridge
 
@@ -178,8 +181,13 @@ def main() -> None:
     ap.add_argument("--ticks", type=int, default=1200)
     ap.add_argument("--period-ms", type=float, default=50.0)
     ap.add_argument("--conditions", default="idle,jax-compile,jax-compile-rt")
-    ap.add_argument("--json", help="also write the results to this file")
+    ap.add_argument(
+        "--json",
+        default=str(_meta.RESULTS / "bench_can_bridge.json"),
+        help="the result file, with its metadata (default bench/results/bench_can_bridge.json)",
+    )
     args = ap.parse_args()
+    meta = _meta.metadata()
     results = [r for c in args.conditions.split(",") if (r := run(c, args.ticks, args.period_ms))]
     head = f"{'condition':<15} {'ticks':>5} {'mean period ms':>14} {'drift ms':>9} {'late p50':>9} {'p99':>7} {'max':>7} {'overruns':>8} {'peer frames/crc/gaps':>21}"
     print(head)
@@ -197,9 +205,9 @@ def main() -> None:
             f"tx errors {r['tx_errors']}; frames dropped for age {r['tx_stale_dropped']}; "
             f"longest send {r['send_max_ms']:.3f} ms; safety state at end {r['safety_state_at_end']}"
         )
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(results, fh, indent=2)
+    meta["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]
+    with open(args.json, "w") as fh:
+        json.dump({"meta": meta, "results": results}, fh, indent=2)
 
 
 if __name__ == "__main__":

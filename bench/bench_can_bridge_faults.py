@@ -35,6 +35,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "can_bridge"))
 
+import _meta  # noqa: E402  (bench/_meta.py, beside this script)
 import can  # noqa: E402
 from cb_fault_peers import (  # noqa: E402
     SerialAdapter,
@@ -220,8 +221,14 @@ def main() -> None:
     )
     ap.add_argument("--stall", type=float, default=2.0, help="stall length, s")
     ap.add_argument("--watchdog-trials", type=int, default=3)
-    ap.add_argument("--json", help="also write the results to this file")
+    ap.add_argument(
+        "--json",
+        default=str(_meta.RESULTS / "bench_can_bridge_faults.json"),
+        help="the result file, with its metadata "
+        "(default bench/results/bench_can_bridge_faults.json)",
+    )
     args = ap.parse_args()
+    meta = _meta.metadata()
     res = {
         "stall_pty": stall_pty(args.stall),
         "stall_serial": stall_serial(args.stall),
@@ -233,8 +240,8 @@ def main() -> None:
     }
     for k, v in res.items():
         print(f"{k:<18} {json.dumps(v)}")
-    if args.json:
-        Path(args.json).write_text(json.dumps(res, indent=2))
+    meta["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]
+    Path(args.json).write_text(json.dumps({"meta": meta, "results": res}, indent=2))
 
 
 if __name__ == "__main__":

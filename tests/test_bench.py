@@ -137,7 +137,9 @@ def test_bench_can_bridge(tmp_path):
         "condition", "ticks", "mean", "period", "ms", "drift", "ms",
         "late", "p50", "p99", "max", "overruns", "peer", "frames/crc/gaps",
     ], out  # fmt: skip
-    results = {r["condition"]: r for r in json.loads(path.read_text())}
+    written = json.loads(path.read_text())
+    assert {"commit", "date_utc", "jax", "cpu_model", "command"} <= set(written["meta"])
+    results = {r["condition"]: r for r in written["results"]}
     # jax-compile-rt is skipped (with a message) where SCHED_FIFO is not permitted
     assert {"idle", "jax-compile"} <= set(results) <= {"idle", "jax-compile", "jax-compile-rt"}
     for name, r in results.items():
