@@ -50,7 +50,7 @@ class Topology:
         an argument, default none). Local Explicit's low-rank factorisation
         needs R_(i) > 0; with other R in a ``ProblemData`` (a sweep, or a
         gradient through R) keep them positive definite, or use
-        ``factorisation="dense"``.
+        ``kkt="dense"``.
     """
 
     n_x: int

@@ -37,7 +37,7 @@ class VehicleParams(NamedTuple):
 
     The first eight fields are Table I of the paper.  ``I_w`` is read as a wheel
     inertia (NOTES item 2).  The rest are choices for the stand-in plant
-    (``ampc_jax.plant``), typical of a large rear-wheel-drive sedan; see
+    (``ampc_jax.vehicle.plant``), typical of a large rear-wheel-drive sedan; see
     ``docs/vehicle.md``.
 
     Tyres use the magic formula ``F = mu F_z sin(C atan(B s))`` per direction
@@ -93,7 +93,7 @@ def wheel_angles(steer: Array) -> Array:
 class Measurement(NamedTuple):
     """What the controller sees from the plant (all SI units, wheels [FL, FR, RL, RR]).
 
-    Produced by ``ampc_jax.plant.measure``.  Scalars have shape () (or (batch,)
+    Produced by ``ampc_jax.vehicle.plant.measure``.  Scalars have shape () (or (batch,)
     under vmap); per-wheel fields have shape (4,).
     """
 
