@@ -42,6 +42,10 @@ class SolveResult(NamedTuple):
         objective, ||r_j||^2 and ||s_j||^2 (eq.Convergence; NOTES item 17).
     rho : (n_obj,) penalty parameters used.
     state : the final solver state (for warm starts), or ``None``.
+    certificate : for a solve to tolerance that did not converge, the
+        evidence of primal infeasibility
+        (:class:`~ampc_jax.admm.feasibility.Certificate`; status 3 when found),
+        else ``None``.
     """
 
     u: Any
@@ -52,6 +56,7 @@ class SolveResult(NamedTuple):
     dual_residual: Any
     rho: Any
     state: Any = None
+    certificate: Any = None
 
     @property
     def u0(self) -> Any:

@@ -274,6 +274,31 @@ def test_bench_qp_peers():
     assert "smoke run: no result file written" in out, out
 
 
+@pytest.mark.timeout(120)
+def test_bench_formulations(tmp_path):
+    """1 s of cruise (each formulation at its default and one grid point) and two
+    generated problems: 35 to 50 s on the shared 2-core machine, mostly compiling."""
+    figure = tmp_path / "formulations.png"
+    out = run_bench("bench_formulations.py", "--smoke", "--out-figure", str(figure), timeout=110)
+    assert (
+        "| scenario / family | formulation | setting | e_sub p50 / p95 / max (Nm) "
+        "| r_time p50 / p95 | iterations p50 / p95 / max |"
+    ) in out, out
+    table = out.split("### closed-loop grid", 1)[0]
+    closed = _rows(table, "cruise_lane_change")
+    family = _rows(table, "random 2 objectives")
+    for rows in (closed, family):
+        assert all(len(r) == 6 for r in rows), rows
+    names = ["Local Explicit (F3)", "Fully Distributed (F1)", "Virtual Center (F2)"]
+    # each formulation at its default and its best setting, then the family's rows
+    assert [r[1] for r in closed] == [n for n in names for _ in range(2)], out
+    assert [r[1] for r in family] == [*names, "IntegratedADMM"], out
+    assert "Rule for 'best': best = the grid point with the smallest iterations max" in out
+    assert out.count("  verdict: ") == 4, out
+    assert 0 < figure.stat().st_size < 150_000
+    assert "smoke run: no result file written" in out, out
+
+
 @pytest.mark.timeout(60)
 def test_bench_rho():
     out = run_bench("bench_rho.py", "--smoke", timeout=50)
@@ -305,3 +330,15 @@ def test_bench_thunk_graph():
         n, sources, worst = map(int, r[2:5])
         assert 0 < sources <= n and 0 <= worst < n, r
         assert r[5] in ("inline", "splits"), r
+
+
+@pytest.mark.timeout(120)
+def test_bench_many_objectives():
+    """Two generated problems with 2 and 3 objectives, every decomposed formulation
+    (about 25 s, mostly compiling)."""
+    out = run_bench("bench_many_objectives.py", "--smoke", timeout=110)
+    assert "| objectives | sharing | formulation | converged |" in out, out
+    for name in ("local_explicit", "fully_distributed", "virtual_center"):
+        rows = [r for r in _rows(out, "3") if r[2] == name]
+        assert rows and rows[0][3] == "2 / 2", out
+    assert "smoke run: no result file written" in out, out

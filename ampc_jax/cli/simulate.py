@@ -191,7 +191,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if problem:
         return fail(problem)
     out = Path(args.out)
-    timing = cfg.formulation == "local_explicit" and not args.no_timing and cfg.shadow
+    timing = cfg.formulation not in ("integrated", "none") and not args.no_timing and cfg.shadow
     m, mb, figs = _run(
         spec,
         cfg,
@@ -302,8 +302,9 @@ def add_simulate_commands(sub: Any) -> None:
         "--formulation",
         choices=FORMULATIONS,
         default="local_explicit",
-        help="the controller: Local Explicit, the integrated MPC, or none (the driver "
-        "alone) (default: local_explicit)",
+        help="the controller: Local Explicit (the paper's Formulation 3), Fully "
+        "Distributed (1), Virtual Center Node (2), the integrated MPC, or none (the "
+        "driver alone) (default: local_explicit)",
     )
     p.add_argument(
         "--disable",

@@ -128,11 +128,15 @@ def _timed(fn: Any, *args: Any, repeats: int = 7) -> tuple[Any, float]:
     return res, float(np.median(times))
 
 
+_DECOMPOSED = ("local_explicit", "fully_distributed", "virtual_center")
+"""The formulations that decompose the problem (``--solver`` is for the integrated one)."""
+
+
 def _ignored(args: argparse.Namespace) -> list[tuple[str, list[str]]]:
     """(cause, the flags given that it makes unused), one entry per cause."""
     out: list[tuple[str, list[str]]] = []
-    if args.formulation == "local_explicit" and args.solver is not None:
-        out.append(("--formulation local_explicit", ["--solver"]))
+    if args.formulation in _DECOMPOSED and args.solver is not None:
+        out.append((f"--formulation {args.formulation}", ["--solver"]))
     reference = args.formulation == "integrated" and args.solver in (None, "clarabel", "osqp")
     if reference:
         given = [
@@ -162,7 +166,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
         jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
-    from ..formulations import IntegratedADMM, LocalExplicit
+    from ..formulations import FORMULATIONS, LocalExplicit
     from ..problem import Problem, ProblemError, merged_data, merged_topology
     from ..reference import solve_reference
     from ..results import USABLE_STATUS, status_name
@@ -186,12 +190,12 @@ def cmd_solve(args: argparse.Namespace) -> int:
         tol = args.tol
         compile_s = 0.0
         solver: Any = None
-        if args.formulation == "local_explicit" or args.solver == "jax":
-            if args.formulation == "integrated" and args.warm_start:
+        if args.formulation in _DECOMPOSED or args.solver == "jax":
+            if args.formulation != "local_explicit" and args.warm_start:
                 return fail("--warm-start: applies to --formulation local_explicit only")
             if args.formulation == "integrated" and len(scales) != 1:
                 return fail("--rho-scale: the integrated problem has one objective; give one value")
-            kind = LocalExplicit if args.formulation == "local_explicit" else IntegratedADMM
+            kind = FORMULATIONS[args.formulation]
             try:
                 solver = kind(
                     T,
@@ -199,7 +203,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
                     anderson=anderson,
                     rho_method="power" if args.rho is None else "given",
                 )
-            except ProblemError as e:  # the topology does not suit Local Explicit
+            except ProblemError as e:  # the topology does not suit the formulation
                 return fail(f"{path}: {e}")
             try:
                 params = solver.params(
@@ -216,7 +220,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
                 check = problem.data(_check_dtype(args))
                 if kind is LocalExplicit:
                     _check_definite_hessians(T, check)
-                else:
+                elif args.formulation == "integrated":
                     _check_definite_hessians(merged_topology(T), merged_data(check))
             warm = _warm_state(args.warm_start, solver, dtype) if args.warm_start else None
             fn = jax.jit(solver.solve)
@@ -224,7 +228,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
             compiled = fn.lower(data, params, warm).compile()
             compile_s = time.perf_counter() - t0
             res, solve_s = _timed(compiled, data, params, warm)
-            names = T.objective_names if kind is LocalExplicit else ("integrated",)
+            names = T.objective_names if args.formulation in _DECOMPOSED else ("integrated",)
             rho_out = {n: float(r) for n, r in zip(names, np.asarray(res.rho), strict=True)}
         else:
             if args.warm_start:
@@ -252,6 +256,20 @@ def cmd_solve(args: argparse.Namespace) -> int:
         "solve_time_s": solve_s,
         "compile_time_s": compile_s,
     }
+    cert = res.certificate
+    if cert is not None and bool(cert.infeasible):
+        out["certificate"] = {
+            "step": int(cert.step),
+            "y": np.asarray(cert.y).tolist(),
+            "Ain_t_y_inf_norm": float(cert.Aty),
+            "b_t_y": float(cert.bty),
+        }
+        print(
+            f"ampc: the constraint set is empty at prediction step {int(cert.step)}: "
+            f"y >= 0 with ||A_in' y||_inf = {float(cert.Aty):.2g} and b' y = "
+            f"{float(cert.bty):.3g} < 0 (the certificate is in the JSON output)",
+            file=sys.stderr,
+        )
     if args.formulation == "local_explicit":
         st = res.state
         out["warm_state"] = {
@@ -395,9 +413,10 @@ def add_solve_command(sub: Any) -> None:
     )
     p.add_argument(
         "--formulation",
-        choices=["local_explicit", "integrated"],
+        choices=["local_explicit", "fully_distributed", "virtual_center", "integrated"],
         default="local_explicit",
-        help="Local Explicit (the paper's Formulation 3) or the integrated MPC "
+        help="Local Explicit (the paper's Formulation 3), Fully Distributed (Formulation "
+        "1), Virtual Center Node (Formulation 2), or the integrated MPC "
         "(default: local_explicit)",
     )
     p.add_argument(
@@ -412,15 +431,16 @@ def add_solve_command(sub: Any) -> None:
         type=_parse_rho,
         default=None,
         metavar="auto|VALUE",
-        help="ADMM penalty: 'auto' for Ghadimi's optimal rho (paper eq. opt_ro), or a "
-        "value used for every objective as it is (default: auto)",
+        help="ADMM penalty: 'auto' for Ghadimi's optimal rho (paper eq. opt_ro; for "
+        "Formulations 1 and 2 sqrt(lambda_min lambda_max) of each objective's Hessian), "
+        "or a value used for every objective as it is (default: auto)",
     )
     p.add_argument(
         "--rho-scale",
         type=_scales,
         default=None,
         metavar="S[,S...]",
-        help="factor(s) on the optimal rho (eq. opt_ro): one value, or one per "
+        help="factor(s) on the 'auto' rho: one value, or one per "
         "objective comma-separated (default: 1)",
     )
     p.add_argument(

@@ -33,6 +33,7 @@ from ..vehicle.params import CONTROL_DT, VehicleParams
 
 __all__ = [
     "DURATION_MAX",
+    "CONSENSUS",
     "FORMULATIONS",
     "MU_MAX",
     "PAPER_SOLVER_OPTIONS",
@@ -48,9 +49,14 @@ __all__ = [
     "with_settings",
 ]
 
-FORMULATIONS = ("local_explicit", "integrated", "none")
-"""Controllers of the closed loop: Local Explicit, IntegratedADMM, or no MPC
-(the example's driver alone)."""
+FORMULATIONS = ("local_explicit", "fully_distributed", "virtual_center", "integrated", "none")
+"""Controllers of the closed loop: Local Explicit (Formulation 3), Fully
+Distributed (1), Virtual Center Node (2), IntegratedADMM, or no MPC (the
+example's driver alone)."""
+
+CONSENSUS = ("fully_distributed", "virtual_center")
+"""The formulations whose rho_j is a factor on sqrt(lambda_min lambda_max) of H_j
+(:mod:`ampc_jax.formulations.consensus`), not on eq.opt_ro's rho*."""
 
 DURATION_MAX = 3600.0
 """Longest simulated time (s) one run accepts: 72,000 control steps, whose log
@@ -165,8 +171,10 @@ class SimConfig:
     Parameters
     ----------
     example : a registered vehicle example's name (``"cruise"`` or ``"stability"``).
-    formulation : ``"local_explicit"`` (default), ``"integrated"`` (IntegratedADMM
-        as the controller) or ``"none"`` (no MPC: the example's driver alone).
+    formulation : ``"local_explicit"`` (default), ``"fully_distributed"``,
+        ``"virtual_center"`` (the paper's Formulations 1 and 2), ``"integrated"``
+        (IntegratedADMM as the controller) or ``"none"`` (no MPC: the example's
+        driver alone).
     disabled : objectives left out (``--disable``); the agents are the union of
         the enabled objectives' groups, the others get zero input.
     settings : the example's settings (weights, bounds, horizon N_p; default
@@ -180,9 +188,11 @@ class SimConfig:
     warm_shift : 1 shifts the previous iterate one step along the horizon, 0
         holds it (controller, shadow and r_time replay alike). ``None``: the
         example's tuned default.
-    rho_scale : factor(s) on eq.opt_ro's rho_j* of Local Explicit, a float or
-        one per objective of the *example* in its order; with ``disabled``
-        objectives only the enabled entries are used. ``None``: the example's default.
+    rho_scale : factor(s) on eq.opt_ro's rho_j* of Local Explicit (for Formulations
+        1 and 2: on sqrt(lambda_min lambda_max) of H_j), a float or one per
+        objective of the *example* in its order; with ``disabled`` objectives
+        only the enabled entries are used. ``None``: the example's default for
+        the formulation (``consensus_rho_scale`` for Formulations 1 and 2).
     relaxation : over-relaxation alpha in (0, 2) (1.0 is the paper's iteration),
         used by Local Explicit *and* the IntegratedADMM it is compared with, so
         that r_time compares like with like. ``None``: the example's default.
@@ -260,6 +270,10 @@ class SimConfig:
 
     def _resolve_solver_options(self, ex: VehicleExample) -> None:
         """Fill ``None`` solver options from the example's defaults and validate them all."""
+        if self.rho_scale is None and self.formulation in CONSENSUS:
+            object.__setattr__(
+                self, "rho_scale", ex.solver_defaults.get("consensus_rho_scale", 1.0)
+            )
         for name in SOLVER_OPTIONS:
             if getattr(self, name) is None:
                 object.__setattr__(self, name, ex.solver_defaults[name])

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..admm.state import ADMMState
-from ..formulations import IntegratedADMM, LocalExplicit
+from ..formulations import FORMULATIONS, Formulation, formulation
 from ..problem.data import ProblemData, make_data
 from ..problem.topology import Topology
 from ..vehicle.examples import VehicleExample
@@ -80,7 +80,8 @@ class Controller:
     enabled : its enabled objectives (example order); the agents are the union
         of their groups.
     horizon : N_p (must match the settings the step is given).
-    formulation : ``"local_explicit"`` (default) or ``"integrated"``.
+    formulation : ``"local_explicit"`` (default), ``"fully_distributed"``,
+        ``"virtual_center"`` or ``"integrated"`` (:data:`~ampc_jax.formulations.FORMULATIONS`).
     max_iter, anderson : the solver's static options (defaults 200, 0).
     warm_start : start each step from the previous step's state (default True).
     warm_shift : 1 shifts that state one step along the horizon, 0 holds it.
@@ -98,9 +99,9 @@ class Controller:
     vehicle: VehicleParams = field(default_factory=VehicleParams)
 
     def __post_init__(self) -> None:
-        if self.formulation not in ("local_explicit", "integrated"):
+        if self.formulation not in FORMULATIONS:
             raise ValueError(
-                f"formulation: the controller runs 'local_explicit' or 'integrated', "
+                f"formulation: the controller runs one of {sorted(FORMULATIONS)}, "
                 f"got {self.formulation!r}"
             )
         unknown = [o for o in self.enabled if o not in self.example.objectives]
@@ -151,11 +152,11 @@ class Controller:
         return self.example.input_columns(self.agent_indices)
 
     @property
-    def solver(self) -> LocalExplicit | IntegratedADMM:
+    def solver(self) -> Formulation:
         """The formulation solving each step."""
-        if self.formulation == "integrated":
-            return IntegratedADMM(self.topology, max_iter=self.max_iter, anderson=self.anderson)
-        return LocalExplicit(self.topology, max_iter=self.max_iter, anderson=self.anderson)
+        return formulation(
+            self.formulation, self.topology, max_iter=self.max_iter, anderson=self.anderson
+        )
 
     # -- init / step ----------------------------------------------------------------
     def init(self, dtype: Any = None) -> ControllerState:

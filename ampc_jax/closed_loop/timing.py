@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 import jax
 import numpy as np
 
-from ..formulations import IntegratedADMM, LocalExplicit
+from ..formulations import IntegratedADMM
 from .config import SimConfig
 from .controller import OK_STATUS
 
@@ -54,14 +54,16 @@ def replay_timing(
     dict with (K,) arrays ``t_distributed``, ``t_integrated`` (s), ``r_time``
     and ``integrated_iterations``, ``distributed_iterations``.
     """
-    if config.formulation == "integrated":
+    if config.formulation in ("integrated", "none"):
         raise ValueError(
-            "replay_timing compares Local Explicit with IntegratedADMM; run local_explicit"
+            "replay_timing compares a decomposed formulation with IntegratedADMM; "
+            f"got formulation {config.formulation!r}"
         )
-    T = config.controller().topology
+    ctrl = config.controller()
+    T = ctrl.topology
     data, warm = log.data, log.warm
     dtype = data.A.dtype
-    le = LocalExplicit(T, max_iter=config.max_iter, anderson=config.anderson)
+    le = ctrl.solver
     p_le = config.loop_params(dtype).controller.solver
     ia = IntegratedADMM(T, max_iter=max(config.max_iter, 2000), anderson=config.anderson)
     p_ia = ia.params(

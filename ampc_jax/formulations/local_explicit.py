@@ -63,6 +63,7 @@ import numpy as np
 
 from ..admm.acceleration import anderson_memory
 from ..admm.costs import padded_costs
+from ..admm.feasibility import with_certificate
 from ..admm.kkt import KKT_SOLVES, DenseKKT, WoodburyKKT, select_kkt
 from ..admm.layout import padded_layout
 from ..admm.params import DEFAULT_TOL, SolverParams, as_params, solver_params
@@ -514,7 +515,8 @@ class LocalExplicit:
         argument of the compiled step; ``warm``: a previous state (:meth:`shift`).
         """
         setup = self.setup(data, params)
-        return self.result(setup, self.run(setup, self.init(setup, warm)))
+        res = self.result(setup, self.run(setup, self.init(setup, warm)))
+        return with_certificate(res, data)
 
     def solve_fixed(
         self,

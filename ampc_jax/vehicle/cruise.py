@@ -229,6 +229,7 @@ CRUISE = register_example(
             "integrated_rho_scale": 0.3,  # the integrated MPC's own best at alpha 1.5
             "shadow_rho_scale": 0.5,  # the shadow reaches 1e-8 Nm^2 in fewest iterations
             "shadow_relaxation": 1.8,
+            "consensus_rho_scale": 1.0,  # Formulations 1 and 2 (docs/formulations.md)
             "anderson": 3,  # also for the integrated MPC it is timed against
         },
         no_mpc_label="no MPC (driver PI)",

@@ -257,6 +257,7 @@ STABILITY = register_example(
             "integrated_rho_scale": 1.2,  # its own best at alpha 1.5 by the same rule
             "shadow_rho_scale": 1.0,
             "shadow_relaxation": 1.8,
+            "consensus_rho_scale": 1.0,  # Formulations 1 and 2 (docs/formulations.md)
             "anderson": 3,
         },
         no_mpc_label="driver alone",

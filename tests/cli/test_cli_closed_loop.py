@@ -86,3 +86,13 @@ def test_cli_compare_writes_the_baseline_and_overlays_it(tmp_path, capsys):
         assert (out / name).stat().st_size > 0, name
     line = next(x for x in text.splitlines() if x.startswith("VSC+WSC against the driver alone"))
     assert f"rear |slip| max {b['rear_slip_abs_max']:.4g} -> {m['rear_slip_abs_max']:.4g}" in line
+
+
+def test_simulate_with_formulation_1(tmp_path, capsys):
+    out = tmp_path / "f1"
+    args = ["simulate", "cruise_lane_change", "--formulation", "fully_distributed"]
+    code = main([*args, "--duration", "2", "--no-timing", "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["formulation"] == "fully_distributed"
+    assert metrics["e_sub_p95"] < 20.0

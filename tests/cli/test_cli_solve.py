@@ -242,19 +242,30 @@ def test_infeasible_problem_prints_no_inputs(capsys, tmp_path, solver):
     assert "no solution" in capsys.readouterr().out
 
 
-def test_local_explicit_on_an_infeasible_problem_prints_no_inputs(capsys, tmp_path):
-    """ADMM has no infeasibility certificate: it stops at --max-iter. Its last
-    iterate breaks the general row, so no inputs are printed (exit 1) and
-    stderr says the problem may be infeasible; Clarabel says infeasible."""
+@pytest.mark.parametrize(
+    "formulation", ["local_explicit", "fully_distributed", "virtual_center", "integrated"]
+)
+def test_every_admm_formulation_certifies_an_infeasible_problem(capsys, tmp_path, formulation):
+    """-a <= -5 with a in its bounds: every ADMM formulation stops with status
+    infeasible and a Farkas certificate (y >= 0, A_in' y = 0, b' y < 0), prints
+    no inputs and exits 1."""
     path = _problem_file(tmp_path, constraints=[{"A": {"a": [[-1.0]]}, "b": [-5.0]}])
-    code = main(["solve", path, "--max-iter", "300", "--json"])
+    args = ["solve", path, "--formulation", formulation, "--max-iter", "300", "--json"]
+    code = main(args + (["--solver", "jax"] if formulation == "integrated" else []))
     out = capsys.readouterr()
     assert code == 1
     result = json.loads(out.out, parse_constant=pytest.fail)
-    assert result["status"] == "max_iter_reached"
+    assert result["status"] == "infeasible"
     assert set(result["u0"].values()) == {None}
-    assert result["constraint_violation"] > 1.0
-    assert "may be infeasible" in out.err
+    cert = result["certificate"]
+    y = np.asarray(cert["y"])
+    assert np.all(y >= 0) and y.max() == pytest.approx(1.0)
+    assert cert["Ain_t_y_inf_norm"] < 1e-6 and cert["b_t_y"] < 0
+    assert "the constraint set is empty at prediction step" in out.err
+    assert "no solution (infeasible)" in out.err
+
+
+def test_an_early_stop_on_a_feasible_problem_prints_its_inputs(capsys, tmp_path):
     # a feasible problem with an active general row, stopped a little early: its
     # violation is of the order a converged result may have (sqrt(tol)), so the
     # inputs are printed

@@ -42,7 +42,7 @@ def test_names_are_resolved_with_a_clear_error():
     T = random_problem(0, 2).topology
     with pytest.raises(ValueError, match="formulation: expected one of"):
         formulation("admm", T)
-    with pytest.raises(ValueError, match="Formulation 1.*not implemented yet"):
-        formulation("fully_distributed", T)
-    with pytest.raises(ValueError, match="Formulation 2.*not implemented yet"):
-        formulation("virtual_center", T)
+    assert type(formulation("fully_distributed", T)).__name__ == "FullyDistributed"
+    assert type(formulation("virtual_center", T)).__name__ == "VirtualCenter"
+    with pytest.raises(ValueError, match="inner_iterations: expected an integer >= 1"):
+        formulation("fully_distributed", T, inner_iterations=0)

@@ -66,7 +66,8 @@ def test_examples_structure_matches_their_models(ex, kind, T_drv):
     reference entry per C row, weights and bounds sized per agent/objective."""
     assert EXAMPLES[ex.name] is ex and example(ex.name) is ex and example(ex) is ex
     assert ex.settings_type is kind
-    assert set(ex.solver_defaults) == set(SOLVER_OPTIONS)
+    # every SimConfig solver option, and Formulations 1 and 2's rho factor
+    assert set(ex.solver_defaults) == {*SOLVER_OPTIONS, "consensus_rho_scale"}
     assert len(ex.agents) == len(ex.agent_sizes) and len(set(ex.agents)) == len(ex.agents)
     assert len(ex.input_names) == ex.n_inputs == sum(ex.agent_sizes)
     assert ex.n_x == len(ex.states)
