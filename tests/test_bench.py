@@ -257,7 +257,7 @@ def test_bench_local_explicit(tmp_path):
 
 @pytest.mark.timeout(120)
 def test_bench_qp_peers():
-    pytest.importorskip("jaxopt")  # the bench extra, not the test extra
+    pytest.importorskip("jaxopt")  # in the test extra too, so CI runs it
     out = run_bench("bench_qp_peers.py", "--smoke", timeout=110)
     assert (
         "| scenario | solver | step median (us) | **r_time = t_LE / t_solver** "

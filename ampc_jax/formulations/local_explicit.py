@@ -493,7 +493,7 @@ class LocalExplicit:
         finite = jnp.all(jnp.isfinite(u)) & jnp.all(jnp.isfinite(state.primal))
         status = jnp.where(~finite, 2, jnp.where(conv, 0, 1)).astype(jnp.int32)
         return SolveResult(
-            u=u,
+            u=jnp.where(finite, u, jnp.zeros_like(u)),  # never a NaN out: status 2 says why
             iterations=state.iteration,
             converged=conv & finite,
             status=status,

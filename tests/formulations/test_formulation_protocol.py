@@ -46,3 +46,13 @@ def test_names_are_resolved_with_a_clear_error():
     assert type(formulation("virtual_center", T)).__name__ == "VirtualCenter"
     with pytest.raises(ValueError, match="inner_iterations: expected an integer >= 1"):
         formulation("fully_distributed", T, inner_iterations=0)
+
+
+@pytest.mark.parametrize("name", sorted(FORMULATIONS))
+def test_a_non_finite_problem_gives_status_numerical_error_and_no_nan(name):
+    p = random_problem(0, 2, shared="chain")
+    f = formulation(name, p.topology, max_iter=50)
+    bad = p.data()._replace(x0=p.data().x0.at[0].set(jnp.nan))
+    res = jax.jit(f.solve)(bad, f.params())
+    assert int(res.status) == 2 and not bool(res.converged)
+    assert np.all(np.isfinite(np.asarray(res.u)))
