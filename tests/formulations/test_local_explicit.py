@@ -127,6 +127,14 @@ def test_dense_factorisation_matches_integrated_optimum(n_obj, shared):
     compare_batch(problems, solver)
 
 
+@pytest.mark.parametrize("shared", ["chain", "both"])
+def test_four_objectives_reach_the_integrated_optimum(shared):
+    """Beyond the paper's two groups (NOTES 12): four objectives, shared agents."""
+    problems = [random_problem(seed, 4, shared=shared) for seed in range(3)]
+    _, active = compare_batch(problems, LocalExplicit(problems[0].topology, **TIGHT))
+    assert active > 0
+
+
 @pytest.mark.parametrize("relaxation", [1.6, 0.8])
 def test_rho_scale_and_relaxation_keep_the_optimum(relaxation):
     problems = [random_problem(seed, 3, shared="both") for seed in range(6)]
