@@ -26,6 +26,7 @@ from .linalg import apply_blocks, eye_like, spd_inverse, spd_inverse_dense, wood
 __all__ = [
     "RHO_METHODS",
     "eq_opt_ro",
+    "extreme_eigenvalues",
     "optimal_rho",
     "power_rho",
     "power_rho_woodbury",
@@ -257,3 +258,21 @@ def power_rho_woodbury(
     v = jax.lax.fori_loop(0, iterations, body, v)
     rq = jnp.sum(v * Hx(v), -1) / jnp.sum(v * apply_blocks(LamB, v), -1)
     return rho_from_quotients(rq)
+
+
+def extreme_eigenvalues(H: Any, Hinv: Any, mask: Any, iterations: int) -> tuple[Any, Any]:
+    """(lambda_min, lambda_max) of each H_j (J, n, n) on its real entries
+    (``mask`` (J, n)) by ``iterations`` steps of power iteration on H_j and
+    H_j^-1; both Rayleigh quotients lie inside [lambda_min, lambda_max]."""
+    ops = jnp.stack([H, Hinv], axis=1)
+    v = power_start(mask, H.dtype)
+
+    def body(_: Any, v: Any) -> Any:
+        v = jnp.einsum("jpab,jpb->jpa", ops, v)
+        return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
+
+    v = jax.lax.fori_loop(0, iterations, body, v)
+    rq = jnp.einsum("jpa,jab,jpb->jp", v, H, v) / jnp.sum(v * v, axis=-1)
+    lam_max = jnp.maximum(rq[:, 0], rq[:, 1])
+    lam_min = jnp.maximum(jnp.minimum(rq[:, 0], rq[:, 1]), jnp.finfo(H.dtype).eps * lam_max)
+    return lam_min, lam_max

@@ -70,7 +70,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -81,7 +80,7 @@ from ..admm.layout import padded_layout
 from ..admm.linalg import block_diag, spd_inverse_dense
 from ..admm.local_qp import InnerState, LocalQP, factor, inner_rho, iterate
 from ..admm.params import DEFAULT_TOL, SolverParams, as_params, solver_params
-from ..admm.rho import power_start
+from ..admm.rho import extreme_eigenvalues
 from ..admm.runners import check_iterations, run_fixed, run_while
 from ..admm.state import shift_horizon
 from ..problem.data import ProblemData
@@ -150,30 +149,6 @@ class ConsensusSetup(NamedTuple):
     tol_dual: Any
 
 
-def _int_at_least(name: str, value: Any, low: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-        raise ValueError(f"{name}: expected an integer >= {low}, got {value!r}")
-    return int(value)
-
-
-def extreme_eigenvalues(H: Any, Hinv: Any, mask: Any, iterations: int) -> tuple[Any, Any]:
-    """(lambda_min, lambda_max) of each H_j (J, n, n) on its real entries
-    (``mask`` (J, n)) by ``iterations`` steps of power iteration on H_j and
-    H_j^-1; both Rayleigh quotients lie inside [lambda_min, lambda_max]."""
-    ops = jnp.stack([H, Hinv], axis=1)
-    v = power_start(mask, H.dtype)
-
-    def body(_: Any, v: Any) -> Any:
-        v = jnp.einsum("jpab,jpb->jpa", ops, v)
-        return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
-
-    v = jax.lax.fori_loop(0, iterations, body, v)
-    rq = jnp.einsum("jpa,jab,jpb->jp", v, H, v) / jnp.sum(v * v, axis=-1)
-    lam_max = jnp.maximum(rq[:, 0], rq[:, 1])
-    lam_min = jnp.maximum(jnp.minimum(rq[:, 0], rq[:, 1]), jnp.finfo(H.dtype).eps * lam_max)
-    return lam_min, lam_max
-
-
 @dataclass(frozen=True)
 class ConsensusADMM:
     """Shared machinery of :class:`FullyDistributed` and :class:`VirtualCenter`.
@@ -209,16 +184,9 @@ class ConsensusADMM:
     title = "consensus"
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "max_iter", _int_at_least("max_iter", self.max_iter, 1))
-        object.__setattr__(
-            self,
-            "inner_iterations",
-            _int_at_least("inner_iterations", self.inner_iterations, 1),
-        )
+        for name in ("max_iter", "inner_iterations", "rho_iterations"):
+            object.__setattr__(self, name, check_iterations(getattr(self, name), name))
         object.__setattr__(self, "anderson", anderson_memory(self.anderson))
-        object.__setattr__(
-            self, "rho_iterations", _int_at_least("rho_iterations", self.rho_iterations, 1)
-        )
         if self.rho_method not in CONSENSUS_RHO_METHODS:
             raise ValueError(
                 f"rho_method: expected one of {CONSENSUS_RHO_METHODS}, got {self.rho_method!r}"
