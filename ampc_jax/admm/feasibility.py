@@ -16,16 +16,19 @@ and tests the multiplier's last change dy::
 
     ||A_in' dy||_inf <= eps ||dy||_inf     and     b^(k)' dy < -eps ||dy||_inf
 
-with eps = :data:`EPS_INFEASIBLE` (1e-3 in float32). A y that passes is
-evidence: anyone can check the two conditions. A step whose set is not empty
-never passes (then b' y >= 0 for every y >= 0 with A' y = 0), so the test
-cannot call a feasible problem infeasible; a nearly empty set may need more
-than :data:`CERTIFY_ITERATIONS` iterations to be certified, and is then
-reported as not converged.
+with eps = :data:`EPS_INFEASIBLE` (1e-3 in float32). The rows are
+equilibrated first (unit row norms, each step's right-hand side scaled to
+unit magnitude), so the test is relative. A y that passes is evidence: anyone
+can check the two conditions on the problem's own rows. A step whose set is
+not empty has b' y >= 0 for every y >= 0 with A' y = 0; the test's margin eps
+keeps a feasible set from passing unless it is within about eps of empty
+in the equilibrated units. A set empty by less than the margin, or one that
+needs more than :data:`CERTIFY_ITERATIONS` iterations, is not certified.
 
-The formulations call :func:`with_certificate` on every result that did not
-converge: it is a ``lax.cond``, so a converged control step pays nothing (under
-``vmap`` both branches run, a few microseconds per case).
+The formulations call :func:`with_certificate` on every result: it searches
+(a ``lax.cond``) when the solve did not converge or its inputs violate a row,
+so a converged control step inside its constraints pays one matrix product
+(under ``vmap`` both branches run).
 """
 
 from __future__ import annotations
@@ -39,7 +42,14 @@ from ..problem.data import ProblemData
 from ..results import SolveResult
 from .linalg import spd_inverse
 
-__all__ = ["CERTIFY_ITERATIONS", "EPS_INFEASIBLE", "Certificate", "certify", "with_certificate"]
+__all__ = [
+    "CERTIFY_ITERATIONS",
+    "EPS_INFEASIBLE",
+    "Certificate",
+    "certify",
+    "violation",
+    "with_certificate",
+]
 
 CERTIFY_ITERATIONS = 200
 """ADMM iterations of :func:`certify` (a lb > ub box is certified within a few)."""
@@ -68,14 +78,21 @@ class Certificate(NamedTuple):
 
 def certify(data: ProblemData, iterations: int = CERTIFY_ITERATIONS) -> Certificate:
     """Look for a Farkas certificate of an empty constraint set at any step."""
-    A, b = data.Ain, data.bin  # (n_c, n_u), (N, n_c)
-    dt = A.dtype
-    n_c = A.shape[0]
+    A0, b0 = data.Ain, data.bin  # (n_c, n_u), (N, n_c)
+    dt = A0.dtype
+    n_c = A0.shape[0]
     if n_c == 0:
         return no_certificate(data)
-    # scale each step's rows to unit right-hand-side magnitude, so that one rho fits
-    # problems in Nm and in unit bounds alike (a positive row scaling keeps the set)
-    scale = jnp.maximum(jnp.max(jnp.abs(b), axis=1, keepdims=True), 1.0)  # (N, 1)
+    # Equilibrate: every row to unit norm (a positive scaling of a row keeps its
+    # half-space, and y scales back), then each step's right-hand side to unit
+    # magnitude (the set scales, emptiness does not change), so that one rho and
+    # one eps fit coefficients of 1e-7 and bounds in kNm alike. Zero rows are
+    # left as they are (0 <= b with b < 0 is itself a certificate).
+    norm_r = jnp.sqrt(jnp.sum(A0 * A0, axis=1))
+    row = jnp.where(norm_r > 0, norm_r, 1.0)
+    A = A0 / row[:, None]
+    b = b0 / row[None, :]
+    scale = jnp.maximum(jnp.max(jnp.abs(b), axis=1, keepdims=True), jnp.finfo(dt).tiny)
     bs = b / scale
     rho = jnp.asarray(1.0, dt)
     M = spd_inverse((jnp.eye(A.shape[1], dtype=dt) + rho * A.T @ A)[None])[0]
@@ -93,19 +110,23 @@ def certify(data: ProblemData, iterations: int = CERTIFY_ITERATIONS) -> Certific
     dy = jnp.maximum(dy, 0.0)  # y >= 0 in this splitting; rounding below 0 is dropped
     norm = jnp.max(dy, axis=1)  # (N,)
     y = dy / jnp.where(norm > 0, norm, 1.0)[:, None]
+    # the test on the equilibrated rows: relative to ||y||_inf = 1 and unit rows
     Aty = jnp.max(jnp.abs(y @ A), axis=1)
     bty = jnp.sum(y * bs, axis=1)
     eps = jnp.asarray(1e-3 if dt == jnp.float32 else EPS_INFEASIBLE, dt)
     ok = (norm > 0) & (Aty <= eps) & (bty < -eps)
     k = jnp.argmax(ok)
     found = jnp.any(ok)
-    # report b'y in the problem's units (the row scaling undone)
+    # the certificate on the problem's own rows: y_c / ||A_c|| (still >= 0), scaled
+    # to max 1, with its A'y and b'y
+    yk = y[k] / row
+    yk = yk / jnp.maximum(jnp.max(yk), jnp.finfo(dt).tiny)
     return Certificate(
         infeasible=found,
         step=jnp.where(found, k, -1).astype(jnp.int32),
-        y=y[k],
-        Aty=Aty[k],
-        bty=bty[k] * scale[k, 0],
+        y=yk,
+        Aty=jnp.max(jnp.abs(yk @ A0)),
+        bty=jnp.sum(yk * b0[k]),
     )
 
 
@@ -118,11 +139,26 @@ def no_certificate(data: ProblemData) -> Certificate:
     )
 
 
+def violation(data: ProblemData, u: Any) -> Any:
+    """() the largest violation max_k,c (A_in U^(k) - b^(k))_c of inputs u (N_p, n_u)."""
+    if data.Ain.shape[0] == 0:
+        return jnp.zeros((), u.dtype)
+    return jnp.max(u @ data.Ain.T - data.bin)
+
+
 def with_certificate(result: SolveResult, data: ProblemData) -> SolveResult:
-    """``result`` with status ``infeasible`` (3) and its :class:`Certificate` when a
-    solve that did not converge faced an empty constraint set. Converged
-    results are not checked (``lax.cond``); their certificate says not infeasible."""
-    cert = jax.lax.cond(result.status == 0, lambda d: no_certificate(d), lambda d: certify(d), data)
+    """``result`` with status ``infeasible`` (3) and its :class:`Certificate` when
+    the constraint set is empty.
+
+    The search runs (``lax.cond``) when the solve did not converge, or when it
+    converged to inputs that violate some row at all: the stopping rule
+    accepts violations of about sqrt(eps_r), so a set that is empty by less
+    than that would otherwise come back solved. Converged inputs that satisfy
+    every row prove the set non-empty and are not searched (the vehicle
+    examples' rows are boxes and their output is projected on them, so their
+    control steps do not pay for the search)."""
+    check = (result.status != 0) | (violation(data, result.u) > 0)
+    cert = jax.lax.cond(check, lambda d: certify(d), lambda d: no_certificate(d), data)
     status = jnp.where(cert.infeasible, 3, result.status).astype(jnp.int32)
     return result._replace(
         status=status, converged=result.converged & ~cert.infeasible, certificate=cert

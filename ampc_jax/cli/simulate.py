@@ -351,15 +351,17 @@ def add_simulate_commands(sub: Any) -> None:
         "--rho-scale",
         default=None,
         metavar="S[,S]",
-        help="factor(s) on Ghadimi's optimal rho (paper eq. opt_ro) for Local Explicit: "
-        "one, or one per objective of the example (LST,YRT or VSC,WSC) (default: the "
-        "example's tuned value, 1,0.5 for cruise and 0.3,3 for stability)",
+        help="factor(s) on the automatic rho: Ghadimi's optimal rho (paper eq. opt_ro) for "
+        "Local Explicit, sqrt(lambda_min lambda_max) of each objective's Hessian for "
+        "Formulations 1 and 2: one, or one per objective of the example (LST,YRT or "
+        "VSC,WSC) (default: the example's tuned value, for Local Explicit 1,0.5 for "
+        "cruise and 0.3,3 for stability, for Formulations 1 and 2 1)",
     )
     p.add_argument(
         "--relaxation",
         type=arg_type(over_relaxation),
         default=None,
-        help="ADMM over-relaxation in (0, 2) for Local Explicit and the integrated MPC; "
+        help="ADMM over-relaxation in (0, 2) for the controller and the integrated MPC; "
         "1 is the paper's iteration (default: the example's tuned value, 1.5)",
     )
     p.add_argument(
@@ -375,7 +377,7 @@ def add_simulate_commands(sub: Any) -> None:
         type=int,
         choices=(0, 1, 2, 3),
         default=None,
-        help="Anderson acceleration memory for Local Explicit and the integrated MPC; "
+        help="Anderson acceleration memory for the controller and the integrated MPC; "
         "0 is plain ADMM, the paper (default: the example's value, 3)",
     )
     p.add_argument(

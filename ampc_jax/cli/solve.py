@@ -166,7 +166,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
         jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
-    from ..formulations import FORMULATIONS, LocalExplicit
+    from ..formulations import FORMULATIONS
     from ..problem import Problem, ProblemError, merged_data, merged_topology
     from ..reference import solve_reference
     from ..results import USABLE_STATUS, status_name
@@ -218,7 +218,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
                 return fail(flag_error(e, {**_FLAGS, "rho": rho_flag}))
             if args.rho is None:
                 check = problem.data(_check_dtype(args))
-                if kind is LocalExplicit:
+                if args.formulation in _DECOMPOSED:  # their automatic rho needs H_j^-1
                     _check_definite_hessians(T, check)
                 elif args.formulation == "integrated":
                     _check_definite_hessians(merged_topology(T), merged_data(check))
@@ -353,13 +353,14 @@ def _check_definite_hessians(T: Any, data: Any) -> None:
             raise ValueError(
                 f"{name}: its Hessian H_j is singular (smallest eigenvalue {low:.3g}, "
                 f"largest {high:.3g}): some input direction costs nothing in it (R_(i) "
-                f"singular and Q_j blind to it), so eq.opt_ro's rho* (which needs H_j^-1) "
-                f"is undefined; give --rho VALUE, or positive weights"
+                f"singular and Q_j blind to it), so the automatic rho (eq.opt_ro's rho*, or "
+                f"sqrt(lambda_min lambda_max) for Formulations 1 and 2) is undefined; give "
+                f"--rho VALUE, or positive weights"
             )
         raise ValueError(
             f"{name}: its Hessian H_j is numerically singular (condition number "
-            f"{high / low:.3g} > 1e12; eigenvalues {low:.3g} to {high:.3g}), so eq.opt_ro's "
-            f"rho* (which needs H_j^-1) is unreliable; weights Q_j and R_(i) spanning "
+            f"{high / low:.3g} > 1e12; eigenvalues {low:.3g} to {high:.3g}), so the automatic "
+            f"rho (which needs H_j^-1) is unreliable; weights Q_j and R_(i) spanning "
             f"about 12 orders of magnitude do this: rescale them, or give --rho VALUE"
         )
 

@@ -176,7 +176,7 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
         if "r_time_median" in m:
             lines.append(
                 f"  r_time          median {f('r_time_median')}  p95 {f('r_time_p95')}  "
-                f"(LE {f('t_distributed_median_us', '.0f')} us vs integrated "
+                f"({m['formulation']} {f('t_distributed_median_us', '.0f')} us vs integrated "
                 f"{f('t_integrated_median_us', '.0f')} us)"
             )
     lines.append(

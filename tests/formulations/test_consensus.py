@@ -72,7 +72,8 @@ def test_a_row_coupling_two_groups_has_a_pinned_gap(kind):
     """p0_0 + p1_0 <= 0.2 couples agents of different groups, each seen by the
     other objective as U-tilde (eq.F1_1). The iteration converges to a feasible
     fixed point that is not the optimum (docs/formulations.md, "The fixed point"):
-    pinned at the measured first-step gap of 1.03 (inputs in about [-1, 1])."""
+    pinned at the measured first-step gap of 1.03 (inputs in about [-1, 1]), and at
+    the point reached with two settings of rho."""
     p = _with_row({"p0_0": [[1.0]], "p1_0": [[1.0]]}, 0.2)
     T, d = p.topology, p.data()
     with pytest.raises(ProblemError, match="share no objective"):
@@ -88,6 +89,14 @@ def test_a_row_coupling_two_groups_has_a_pinned_gap(kind):
     assert np.max(u @ G - h) < 1e-6  # feasible
     gap = float(np.max(np.abs(np.asarray(res.u0) - ref.u[0])))
     assert gap == pytest.approx(1.03, abs=0.02)
+    # the equilibrium is not unique: which one is reached depends on rho. The row
+    # binds at every one (p0 + p1 = 0.2); the shared agent s01 stays at -0.509
+    u0 = np.asarray(res.u0)
+    np.testing.assert_allclose(u0, [-0.2989, 0.4989, -0.5089], atol=2e-4)
+    other = jax.jit(f.solve)(d, f.params(rho=(0.1, 10.0), **TIGHT))
+    v0 = np.asarray(other.u0)
+    assert int(other.status) == 0 and v0[0] + v0[1] == pytest.approx(0.2, abs=1e-6)
+    assert v0[0] == pytest.approx(0.047, abs=2e-3) and v0[2] == pytest.approx(-0.5089, abs=2e-4)
 
 
 @pytest.mark.parametrize("kind", KINDS, ids=lambda k: k.__name__)
