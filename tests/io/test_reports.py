@@ -130,7 +130,7 @@ def test_summary_lines_of_the_run(run):
     timed = dict(m, r_time_median=0.9, r_time_p95=1.2, t_distributed_median_us=50.0,
                  t_integrated_median_us=55.0)  # fmt: skip
     (r_line,) = [x for x in summary_lines(timed) if x.startswith("  r_time")]
-    assert "median 0.9  p95 1.2  (LE 50 us vs integrated 55 us)" in r_line
+    assert "median 0.9  p95 1.2  (local_explicit 50 us vs integrated 55 us)" in r_line
 
 
 def test_summary_header_of_driver_alone_and_disabled_objective(run):
