@@ -380,8 +380,15 @@ def test_headline_targets_of_the_full_manoeuvres(scenario, max_iterations):
     assert m["warnings"] == []
 
 
-@pytest.mark.parametrize("name", ["fully_distributed", "virtual_center"])
-@pytest.mark.parametrize("scenario", ["cruise_lane_change", "stability_dlc"])
+@pytest.mark.parametrize(
+    ("name", "scenario"),
+    [
+        ("fully_distributed", "cruise_lane_change"),
+        ("virtual_center", "stability_dlc"),
+        pytest.param("virtual_center", "cruise_lane_change", marks=pytest.mark.slow),
+        pytest.param("fully_distributed", "stability_dlc", marks=pytest.mark.slow),
+    ],
+)
 def test_formulations_1_and_2_control_the_vehicle(name, scenario):
     """The paper's Formulations 1 and 2 in the controller's seat: bounded inputs,
     no fallback, e_sub against the shadow under the paper's 20 Nm, and r_time

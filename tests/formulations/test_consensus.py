@@ -30,7 +30,10 @@ def relative_error(u0, ref):
 
 
 @pytest.mark.parametrize("kind", KINDS, ids=lambda k: k.__name__)
-@pytest.mark.parametrize(("J", "shared"), [(2, "chain"), (3, "chain"), (3, "both"), (4, "both")])
+@pytest.mark.parametrize(
+    ("J", "shared"),
+    [(2, "chain"), pytest.param(3, "chain", marks=pytest.mark.slow), (3, "both"), (4, "both")],
+)
 def test_reaches_the_integrated_optimum(kind, J, shared):
     """First-step inputs within 1e-3 relative of Clarabel's, with unequal rho_j
     (``rho_spread``: weights 1x, 10x, 100x apart; NOTES item 14) and active bounds."""
