@@ -10,7 +10,7 @@ import jax.numpy as jnp
 from ..problem.topology import Topology
 from .layout import padded_layout
 
-__all__ = ["ADMMState", "cold_state", "shift_horizon", "shift_state"]
+__all__ = ["ADMMState", "cold_state", "shift_horizon", "shift_state", "warm_start"]
 
 
 class ADMMState(NamedTuple):
@@ -91,3 +91,22 @@ def cold_state(topology: Topology, dtype: Any = None) -> ADMMState:
         primal=jnp.full((J,), jnp.inf, dtype),
         dual=jnp.full((J,), jnp.inf, dtype),
     )
+
+
+def warm_start(cold: Any, warm: Any, expected: str, shape_hint: str = "") -> Any:
+    """``warm`` checked against the formulation's ``cold`` state (its NamedTuple type
+    and every field's shape), with its iteration count and residuals reset, so
+    that a previous result's ``.state`` passed as it is still iterates on new
+    data; ``cold`` when ``warm`` is None. ``expected`` and ``shape_hint`` word
+    the TypeError and ValueError."""
+    if warm is None:
+        return cold
+    if not isinstance(warm, type(cold)):
+        raise TypeError(f"warm: expected {expected}, got {type(warm).__name__}")
+    for name, want, got in zip(type(cold)._fields, cold, warm, strict=True):
+        if jnp.shape(got) != want.shape:
+            raise ValueError(
+                f"warm.{name}: expected shape {want.shape} for this topology"
+                f"{shape_hint}, got {jnp.shape(got)}"
+            )
+    return warm._replace(iteration=cold.iteration, primal=cold.primal, dual=cold.dual)

@@ -82,7 +82,7 @@ from ..admm.local_qp import InnerState, LocalQP, factor, inner_rho, iterate
 from ..admm.params import DEFAULT_TOL, SolverParams, as_params, solver_params
 from ..admm.rho import extreme_eigenvalues
 from ..admm.runners import check_iterations, run_fixed, run_while
-from ..admm.state import shift_horizon
+from ..admm.state import shift_horizon, warm_start
 from ..problem.data import ProblemData
 from ..problem.errors import ProblemError
 from ..problem.topology import Topology
@@ -340,21 +340,11 @@ class ConsensusADMM:
 
     def init(self, setup: ConsensusSetup, warm: ConsensusState | None = None) -> ConsensusState:
         """Cold start, or ``warm`` with its iteration count and residuals reset."""
-        cold = self.cold_state(setup.rho.dtype)
-        if warm is None:
-            return cold
-        if not isinstance(warm, ConsensusState):
-            raise TypeError(
-                f"warm: expected a ConsensusState (a previous {self.title} result's .state), "
-                f"got {type(warm).__name__}"
-            )
-        for name, want, got in zip(ConsensusState._fields, cold, warm, strict=True):
-            if jnp.shape(got) != want.shape:
-                raise ValueError(
-                    f"warm.{name}: expected shape {want.shape} for this topology, "
-                    f"got {jnp.shape(got)}"
-                )
-        return warm._replace(iteration=cold.iteration, primal=cold.primal, dual=cold.dual)
+        return warm_start(
+            self.cold_state(setup.rho.dtype),
+            warm,
+            f"a ConsensusState (a previous {self.title} result's .state)",
+        )
 
     def local_inputs(self, state: ConsensusState) -> tuple:
         """U_j, (N_p, n_u,j) per objective, columns in ``Topology.group_columns(j)`` order."""

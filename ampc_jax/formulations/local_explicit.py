@@ -69,7 +69,7 @@ from ..admm.layout import padded_layout
 from ..admm.params import DEFAULT_TOL, SolverParams, as_params, solver_params
 from ..admm.rho import eq_opt_ro
 from ..admm.runners import run_fixed, run_while
-from ..admm.state import ADMMState, cold_state, shift_state
+from ..admm.state import ADMMState, cold_state, shift_state, warm_start
 from ..problem.data import ProblemData
 from ..problem.topology import Topology
 from ..results import SolveResult
@@ -316,22 +316,13 @@ class LocalExplicit:
         it is (not shifted) still iterates on the new data instead of being
         taken as converged.
         """
-        cold = cold_state(self.topology, setup.rho.dtype)
-        if warm is None:
-            return cold
-        if not isinstance(warm, ADMMState):
-            raise TypeError(
-                f"warm: expected an ADMMState (a previous result's .state, shifted), "
-                f"got {type(warm).__name__}"
-            )
-        for name, want, got in zip(ADMMState._fields, cold, warm, strict=True):
-            if jnp.shape(got) != want.shape:
-                raise ValueError(
-                    f"warm.{name}: expected shape {want.shape} for this topology "
-                    f"(ADMMState is in the solver's padded layout; build one from "
-                    f"per-objective arrays with LocalExplicit.state_of), got {jnp.shape(got)}"
-                )
-        return warm._replace(iteration=cold.iteration, primal=cold.primal, dual=cold.dual)
+        return warm_start(
+            cold_state(self.topology, setup.rho.dtype),
+            warm,
+            "an ADMMState (a previous result's .state, shifted)",
+            " (ADMMState is in the solver's padded layout; build one from "
+            "per-objective arrays with LocalExplicit.state_of)",
+        )
 
     # -- per-objective views of the padded state ------------------------------------
     def local_inputs(self, state: ADMMState) -> tuple:
