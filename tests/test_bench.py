@@ -332,6 +332,7 @@ def test_bench_thunk_graph():
         assert r[5] in ("inline", "splits"), r
 
 
+@pytest.mark.slow  # the formulations' own tests cover 2 to 4 objectives in the default run
 @pytest.mark.timeout(120)
 def test_bench_many_objectives():
     """Two generated problems with 2 and 3 objectives, every decomposed formulation
