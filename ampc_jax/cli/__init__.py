@@ -1,4 +1,5 @@
-"""The ``ampc`` command line: ``solve``, ``simulate``, ``demo``.
+"""The ``ampc`` command line: ``solve``, ``simulate``, ``demo``, ``run``, ``plant``,
+``export``, ``replay``.
 
 Errors go to stderr as ``ampc: error: --flag: message`` with exit code 2 (bad
 input); library warnings as ``ampc: warning: ...`` lines. Nothing in the
@@ -11,6 +12,7 @@ import sys
 
 from .. import __version__
 from .args import Parser, fail
+from .runtime import add_runtime_commands
 from .simulate import add_simulate_commands
 from .solve import add_solve_command
 
@@ -26,6 +28,7 @@ def build_parser() -> Parser:
     sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
     add_solve_command(sub)
     add_simulate_commands(sub)
+    add_runtime_commands(sub)
     return parser
 
 

@@ -44,6 +44,7 @@ _FLAGS = {
     "compare": "--compare",
     "duration": "--duration",
     "mu": "--mu",
+    "actuators": "--actuators",
 }
 
 
@@ -181,6 +182,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             integrated_rho_scale=args.integrated_rho_scale,
             warm_shift=args.warm_shift,
             anderson=args.anderson,
+            actuators=args.actuators,
         )
         if args.set:
             cfg = with_settings(cfg, **_parse_settings(args.set, cfg.settings))
@@ -400,6 +402,14 @@ def add_simulate_commands(sub: Any) -> None:
         action="store_true",
         help="also run the paper's baseline (cruise: LST alone; stability: the driver "
         "alone) into OUT/baseline and overlay both in the figures (default: off)",
+    )
+    p.add_argument(
+        "--actuators",
+        choices=("ideal", "bridge"),
+        default="ideal",
+        help="between controller and plant: 'ideal' (the commanded torques) or 'bridge' "
+        "(the CAN bridge's ranges, rates and 2 Nm steps, as `ampc run` applies them) "
+        "(default: ideal)",
     )
     p.add_argument(
         "--no-shadow",

@@ -26,6 +26,7 @@ import numpy as np
 
 from ..admm.acceleration import anderson_memory
 from ..admm.params import SolverParams
+from ..vehicle.actuators import ACTUATORS
 from ..vehicle.examples import VehicleExample, example
 from ..vehicle.manoeuvres import DriverParams, ScenarioSpec, scenario
 from ..vehicle.models import ExampleSettings
@@ -65,6 +66,9 @@ DURATION_MAX = 3600.0
 MU_MAX = 2.0
 """Largest road friction accepted (dry asphalt is about 1; the plant's tyre
 model is not meant for more than racing slicks)."""
+
+ACTUATOR_MODELS = ("ideal", "bridge")
+"""What stands between the controller's torques and the plant (``SimConfig.actuators``)."""
 
 SOLVER_OPTIONS = (
     "warm_shift",
@@ -206,6 +210,10 @@ class SimConfig:
     shadow_rho_scale, shadow_relaxation : the shadow's rho* factor and
         over-relaxation; they change how fast it reaches its tolerance, not
         the optimum. ``None``: the example's default.
+    actuators : ``"ideal"`` (default: the plant gets the controller's torques) or
+        ``"bridge"`` (the CAN bridge's limiter between them: the wheels' ranges
+        and rates of :data:`~ampc_jax.vehicle.actuators.ACTUATORS` on the 2 Nm
+        grid, as a run over the bus applies them).
     vehicle, driver : vehicle and driver data (static: the plant, not tunables).
 
     Every field is checked on construction (ValueError naming the field). The
@@ -232,6 +240,7 @@ class SimConfig:
     shadow_max_iter: int = 5000
     shadow_rho_scale: float | None = None
     shadow_relaxation: float | None = None
+    actuators: str = "ideal"
     vehicle: VehicleParams = field(default_factory=VehicleParams)
     driver: DriverParams = field(default_factory=DriverParams)
 
@@ -264,6 +273,10 @@ class SimConfig:
                     f"disable: {name!r} is not an objective of the {ex.name} example; "
                     f"expected one of {list(ex.objectives)}"
                 )
+        if self.actuators not in ACTUATOR_MODELS:
+            raise ValueError(
+                f"actuators: expected one of {ACTUATOR_MODELS}, got {self.actuators!r}"
+            )
         if not self.enabled and self.formulation != "none":
             raise ValueError("disable: every objective is disabled; use formulation 'none'")
         self._resolve_solver_options(ex)
@@ -372,7 +385,8 @@ class SimConfig:
         shadow = None
         if ctrl is not None and self.shadow:
             shadow = IntegratedShadow(ctrl.topology, self.shadow_max_iter, self.warm_shift)
-        return Simulator(self.vehicle_example, ctrl, shadow, self.vehicle, self.driver)
+        limits = ACTUATORS if self.actuators == "bridge" else None
+        return Simulator(self.vehicle_example, ctrl, shadow, self.vehicle, self.driver, limits)
 
     def loop_params(self, dtype: Any = None) -> LoopParams:
         """The run's numbers as a :class:`LoopParams` pytree of ``dtype`` arrays.

@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..vehicle.actuators import ActuatorLimits, bridge_actuators
 from ..vehicle.examples import VehicleExample
 from ..vehicle.manoeuvres import (
     DriverParams,
@@ -96,6 +97,7 @@ class SimLog(NamedTuple):
 class _Carry(NamedTuple):
     plant: Any
     driver: Any
+    actuators: Any  # (4,) int32, the bridge limiter's output in 2 Nm steps
     controller: Any  # ControllerState, or None without an MPC
     shadow: Any  # the shadow's ADMMState, or None
 
@@ -105,7 +107,10 @@ class Simulator:
     """The static closed loop: example, controller, shadow, vehicle, driver (hashable).
 
     ``controller`` None: no MPC (the example's driver alone); ``shadow`` None:
-    no e_sub. Build it with :meth:`SimConfig.simulator`.
+    no e_sub; ``actuators`` None: the plant gets the commanded torques, else
+    the CAN bridge's limiter with these limits stands between
+    (:func:`~ampc_jax.vehicle.actuators.bridge_actuators`; ``torques`` logs
+    what the plant got). Build it with :meth:`SimConfig.simulator`.
     """
 
     example: VehicleExample
@@ -113,6 +118,7 @@ class Simulator:
     shadow: IntegratedShadow | None
     vehicle: VehicleParams
     driver: DriverParams
+    actuators: ActuatorLimits | None = None
 
     def run(
         self, scenario: Scenario, params: LoopParams, n_steps: int, fault: Any = None
@@ -173,6 +179,9 @@ class Simulator:
                 fb = jnp.zeros((), bool)
                 data = warm_in = None
                 torques = ex.wheel_torques(u_full, T_drv)
+            act = carry.actuators
+            if self.actuators is not None:
+                act, torques = bridge_actuators(act, torques, self.actuators)
             y_ref = yaw_rate_reference(meas.v_x, steer, mu, vp)
             om_ref = ex.wheel_speed_reference(meas, T_drv, vp, settings)
             out = SimLog(
@@ -205,11 +214,12 @@ class Simulator:
                 warm=warm_in,
             )
             ps = plant_step(ps, steer, torques, mu, vp)
-            return _Carry(ps, ds, ctrl_state, sh_state), out
+            return _Carry(ps, ds, act, ctrl_state, sh_state), out
 
         init = _Carry(
             initial_plant_state(scenario, vp, dtype),
             initial_driver_state(dtype),
+            jnp.zeros((4,), jnp.int32),
             ctrl.init(dtype) if ctrl is not None else None,
             shadow.init(dtype) if shadow is not None else None,
         )

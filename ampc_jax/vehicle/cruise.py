@@ -16,6 +16,7 @@ from typing import Any
 import jax.numpy as jnp
 from jax import Array
 
+from .actuators import FRONT_MIN_NM, REAR_MAX_NM
 from .examples import VehicleExample, register_example
 from .models import (
     ControlModel,
@@ -74,9 +75,11 @@ class CruiseSettings(ExampleSettings):
     r_dtr: float = 1.0 / 2000.0**2  # Nm^-2, R_(DTR)
     r_rtv: float = 1.0 / 500.0**2  # Nm^-2, R_(RTV)
     r_fdb: float = 1.0 / 1000.0**2  # Nm^-2, R_(FDB) (each of the two inputs)
-    dtr_max: float = 2000.0  # Nm, |T_DTR| bound (1000 per rear wheel)
-    rtv_max: float = 1000.0  # Nm, |T_RTV| bound (docs/vehicle.md, "Actuator bounds")
-    fdb_max: float = 2000.0  # Nm, FDB brakes in [-fdb_max, 0]
+    # bounds from the actuators (vehicle.actuators): |DTR/2| + |RTV| fills a rear
+    # wheel's range, FDB a front wheel's (docs/vehicle.md, "Actuator bounds")
+    dtr_max: float = REAR_MAX_NM  # Nm, |T_DTR| bound (1000 per rear wheel)
+    rtv_max: float = REAR_MAX_NM / 2  # Nm, |T_RTV| bound
+    fdb_max: float = -FRONT_MIN_NM  # Nm, FDB brakes in [-fdb_max, 0]
     literal: bool = False  # True: paper's literal W_d (NOTES item 9)
 
     def Q(self) -> tuple[Array, ...]:

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from .actuators import FRONT_MIN_NM, REAR_MAX_NM
 from .examples import VehicleExample, register_example
 from .models import (
     ControlModel,
@@ -64,8 +65,8 @@ class StabilitySettings(ExampleSettings):
     r_tcr: float = 1.0 / 2000.0**2  # Nm^-2
     r_rtv: float = 1.0 / 500.0**2  # Nm^-2
     r_fdb: float = 1.0 / 1000.0**2  # Nm^-2 (each)
-    rtv_max: float = 1000.0  # Nm (as CruiseSettings)
-    fdb_max: float = 2000.0  # Nm
+    rtv_max: float = REAR_MAX_NM / 2  # Nm (as CruiseSettings; vehicle.actuators)
+    fdb_max: float = -FRONT_MIN_NM  # Nm
     slip_des: float = 0.15  # S_x,des (eq.VSC_objective)
     literal: bool = False  # True: paper's literal W_d without tyre reaction
 

@@ -4,7 +4,7 @@
 
 use crate::candump::{self, Dir, LogSender, LogWriter};
 use crate::channel::ChannelSpec;
-use crate::codec::{encode_torque_cmd, Mode, RX_MESSAGES};
+use crate::codec::{encode_torque_cmd, Mode, N_RX, RX_MESSAGES};
 use crate::e2e::{self, Check, Judge, Receiver};
 use crate::error::{clip, Error, Result};
 use crate::frame::CanFrame;
@@ -272,7 +272,13 @@ pub struct RxStore {
 }
 
 /// Names of the received messages, in [`RX_MESSAGES`] order.
-pub const RX_NAMES: [&str; 3] = ["VehicleMotion", "WheelSpeeds", "SteeringState"];
+pub const RX_NAMES: [&str; N_RX] = [
+    "VehicleMotion",
+    "WheelSpeeds",
+    "SteeringState",
+    "VehicleAccel",
+    "DriverDemand",
+];
 
 impl RxStore {
     /// Empty state; see [`BridgeConfig`] for the receiver settings.
@@ -369,7 +375,7 @@ impl RxStore {
 
     /// The vehicle state as of `now_ns`.
     pub fn state(&self, now_ns: u64, state_timeout_ns: u64) -> VehicleState {
-        let mut status = ["no data"; 3];
+        let mut status = ["no data"; N_RX];
         for (st, slot) in status.iter_mut().zip(&self.slots) {
             // A sender that keeps sending bad frames is reported by what is
             // wrong with them ("repeated", ...), not merely as a timeout.
@@ -399,11 +405,11 @@ impl RxStore {
                 .get(i)
                 .and_then(|s| s.last_ok_ns.map(|t| (t, s.values)))
         };
-        let (motion, wheels, steer) = (get(0), get(1), get(2));
-        let ages: Vec<Option<u64>> = [motion, wheels, steer]
-            .iter()
-            .map(|x| x.map(|(t, _)| now_ns.saturating_sub(t)))
-            .collect();
+        let (motion, wheels, steer, accel, driver) = (get(0), get(1), get(2), get(3), get(4));
+        // The state is as old as its oldest message, and has no age until
+        // every message has arrived once.
+        let ages: [Option<u64>; N_RX] = [motion, wheels, steer, accel, driver]
+            .map(|x| x.map(|(t, _)| now_ns.saturating_sub(t)));
         let age_ms = if ages.iter().all(Option::is_some) {
             ages.iter().flatten().max().map(|a| *a as f64 / 1e6)
         } else {
@@ -416,6 +422,11 @@ impl RxStore {
             yaw_rate_radps: motion.map(|(_, v)| v[2]),
             wheel_speeds_radps: wheels.map(|(_, v)| v),
             steering_angle_rad: steer.map(|(_, v)| v[0]),
+            long_accel_mps2: accel.map(|(_, v)| v[0]),
+            lat_accel_mps2: accel.map(|(_, v)| v[1]),
+            driver_torque_nm: driver.map(|(_, v)| v[0]),
+            set_speed_mps: driver.map(|(_, v)| v[1]),
+            road_friction: driver.map(|(_, v)| v[2]),
             age_ms,
             status,
             reason,
@@ -423,12 +434,13 @@ impl RxStore {
     }
 }
 
-/// The received vehicle state. Values are those of each message's last
-/// usable frame (`None` until there is one); `valid` is true only while
-/// every message is judged valid (`status`, `reason` say why not).
+/// The received vehicle state, from the five received messages
+/// ([`RX_NAMES`]). Values are those of each message's last usable frame
+/// (`None` until there is one); `valid` is true only while all five are
+/// judged valid (`status`, `reason` say why not).
 #[derive(Clone, Debug, PartialEq)]
 pub struct VehicleState {
-    /// Every message fresh and judged valid over its window.
+    /// All five messages fresh and judged valid over their windows.
     pub valid: bool,
     /// Longitudinal speed, m/s.
     pub long_speed_mps: Option<f64>,
@@ -440,10 +452,20 @@ pub struct VehicleState {
     pub wheel_speeds_radps: Option<[f64; 4]>,
     /// Steering angle, rad.
     pub steering_angle_rad: Option<f64>,
-    /// Age of the oldest of the three messages, ms (`None` until all arrived).
+    /// Longitudinal acceleration (body frame, centre of gravity), m/s^2.
+    pub long_accel_mps2: Option<f64>,
+    /// Lateral acceleration (body frame, centre of gravity), m/s^2.
+    pub lat_accel_mps2: Option<f64>,
+    /// The driver's rear-axle torque request, Nm.
+    pub driver_torque_nm: Option<f64>,
+    /// Cruise set speed, m/s.
+    pub set_speed_mps: Option<f64>,
+    /// Road-friction estimate published by the vehicle (dimensionless).
+    pub road_friction: Option<f64>,
+    /// Age of the oldest of the five messages, ms (`None` until all arrived).
     pub age_ms: Option<f64>,
     /// Per message (`RX_NAMES` order): "ok" or why it is not valid.
-    pub status: [&'static str; 3],
+    pub status: [&'static str; N_RX],
     /// `None` when valid, else "Message: why; ...".
     pub reason: Option<String>,
 }
@@ -1472,19 +1494,29 @@ mod tests {
         );
     }
 
-    fn three(rx: &mut RxStore, c: u8, t: u64, to: u64) {
-        use crate::codec::{STEERING_STATE, VEHICLE_MOTION, WHEEL_SPEEDS};
-        rx.on_frame(
-            &VEHICLE_MOTION.encode(&[12.34, -0.5, 0.25], c).unwrap(),
-            t,
-            to,
-        );
-        rx.on_frame(
-            &WHEEL_SPEEDS.encode(&[40.1, 40.2, 40.3, 40.4], c).unwrap(),
-            t,
-            to,
-        );
-        rx.on_frame(&STEERING_STATE.encode(&[0.1234], c).unwrap(), t, to);
+    /// Feed one healthy frame of each received message but `skip` (an
+    /// index into `RX_MESSAGES`), all with counter `c`.
+    fn all_but(rx: &mut RxStore, skip: Option<usize>, c: u8, t: u64, to: u64) {
+        use crate::codec::{
+            DRIVER_DEMAND, STEERING_STATE, VEHICLE_ACCEL, VEHICLE_MOTION, WHEEL_SPEEDS,
+        };
+        let frames = [
+            VEHICLE_MOTION.encode(&[12.34, -0.5, 0.25], c),
+            WHEEL_SPEEDS.encode(&[40.1, 40.2, 40.3, 40.4], c),
+            STEERING_STATE.encode(&[0.1234], c),
+            VEHICLE_ACCEL.encode(&[-3.21, 7.5], c),
+            DRIVER_DEMAND.encode(&[-1234.5, 17.25, 0.35], c),
+        ];
+        for (i, f) in frames.into_iter().enumerate() {
+            if Some(i) != skip {
+                rx.on_frame(&f.unwrap(), t, to);
+            }
+        }
+    }
+
+    /// One healthy frame of every received message, counter `c`.
+    fn all_five(rx: &mut RxStore, c: u8, t: u64, to: u64) {
+        all_but(rx, None, c, t, to);
     }
 
     #[test]
@@ -1501,15 +1533,16 @@ mod tests {
                     .unwrap()
                     .contains("VehicleMotion: no data")
         );
-        three(&mut rx, 0, t, to);
-        three(&mut rx, 1, t, to);
-        assert_eq!(rx.state(t, to).status, ["sync"; 3]);
-        three(&mut rx, 2, t + MS, to);
+        all_five(&mut rx, 0, t, to);
+        all_five(&mut rx, 1, t, to);
+        assert_eq!(rx.state(t, to).status, ["sync"; N_RX]);
+        all_five(&mut rx, 2, t + MS, to);
         let s = rx.state(t + 2 * MS, to);
         assert!(s.valid, "{s:?}");
         assert!((s.long_speed_mps.unwrap() - 12.34).abs() < 1e-9);
         assert!((s.wheel_speeds_radps.unwrap()[3] - 40.4).abs() < 1e-9);
         assert_eq!(s.age_ms, Some(1.0));
+        assert_eq!(s.status, ["ok"; N_RX]);
         // Bad CRC: rejected, value unchanged; one strike keeps it valid.
         let mut bad = VEHICLE_MOTION
             .encode(&[19.0, 0.0, 0.0], 3)
@@ -1550,12 +1583,133 @@ mod tests {
         // Goes invalid when it stops arriving; after the gap it re-synchronises.
         assert_eq!(rx.state(t + 300 * MS, to).status[1], "timeout");
         let sync = rx.rx_sync;
-        three(&mut rx, 9, t + 600 * MS, to);
-        three(&mut rx, 10, t + 601 * MS, to);
-        assert_eq!(rx.rx_sync, sync + 6);
+        all_five(&mut rx, 9, t + 600 * MS, to);
+        all_five(&mut rx, 10, t + 601 * MS, to);
+        assert_eq!(rx.rx_sync, sync + 2 * N_RX as u64);
         assert!(!rx.state(t + 601 * MS, to).valid);
-        three(&mut rx, 11, t + 602 * MS, to);
+        all_five(&mut rx, 11, t + 602 * MS, to);
         assert!(rx.state(t + 602 * MS, to).valid);
+    }
+
+    #[test]
+    fn accel_and_driver_demand_decode_into_the_state() {
+        let mut rx = RxStore::new(2, 2, 2);
+        let to = 250 * MS;
+        let t = 10_000 * MS;
+        let s = rx.state(t, to);
+        assert_eq!(
+            (s.long_accel_mps2, s.driver_torque_nm, s.road_friction),
+            (None, None, None)
+        );
+        for c in 0..3 {
+            all_five(&mut rx, c, t + u64::from(c) * 20 * MS, to);
+        }
+        let s = rx.state(t + 45 * MS, to);
+        assert!(s.valid, "{s:?}");
+        let near = |x: Option<f64>, want: f64| (x.unwrap() - want).abs() < 1e-9;
+        assert!(near(s.long_accel_mps2, -3.21), "{s:?}");
+        assert!(near(s.lat_accel_mps2, 7.5), "{s:?}");
+        assert!(near(s.driver_torque_nm, -1234.5), "{s:?}");
+        assert!(near(s.set_speed_mps, 17.25), "{s:?}");
+        assert!(near(s.road_friction, 0.35), "{s:?}");
+        // Oldest of the five: all fed at t + 40 ms.
+        assert_eq!(s.age_ms, Some(5.0));
+    }
+
+    #[test]
+    fn a_missing_accel_or_driver_demand_makes_the_state_invalid() {
+        for (skip, name) in [(3, "VehicleAccel"), (4, "DriverDemand")] {
+            let mut rx = RxStore::new(2, 2, 2);
+            let to = 250 * MS;
+            let t = 10_000 * MS;
+            // Never received: no data, and no age for the whole state.
+            for c in 0..4 {
+                all_but(&mut rx, Some(skip), c, t + u64::from(c) * 20 * MS, to);
+            }
+            let s = rx.state(t + 70 * MS, to);
+            assert!(!s.valid);
+            assert_eq!(s.reason.as_deref(), Some(&*format!("{name}: no data")));
+            assert_eq!(s.status[skip], "no data");
+            assert_eq!(s.age_ms, None);
+            // Received, then it stops while the others go on: timeout.
+            let mut rx = RxStore::new(2, 2, 2);
+            for c in 0..4 {
+                all_five(&mut rx, c, t + u64::from(c) * 20 * MS, to);
+            }
+            assert!(rx.state(t + 70 * MS, to).valid);
+            for c in 4..20u8 {
+                all_but(&mut rx, Some(skip), c % 15, t + u64::from(c) * 20 * MS, to);
+            }
+            let s = rx.state(t + 390 * MS, to);
+            assert!(!s.valid);
+            assert_eq!(s.reason.as_deref(), Some(&*format!("{name}: timeout")));
+            assert!(s.age_ms.unwrap() > 250.0, "{s:?}");
+        }
+    }
+
+    #[test]
+    fn a_corrupt_or_implausible_accel_or_driver_demand_is_not_used() {
+        use crate::codec::{DRIVER_DEMAND, VEHICLE_ACCEL};
+        let to = 250 * MS;
+        let t = 10_000 * MS;
+        for (skip, m) in [(3, &VEHICLE_ACCEL), (4, &DRIVER_DEMAND)] {
+            let mut rx = RxStore::new(2, 2, 2);
+            for c in 0..3 {
+                all_five(&mut rx, c, t + u64::from(c) * 20 * MS, to);
+            }
+            assert!(rx.state(t + 40 * MS, to).valid);
+            let before = rx.state(t + 40 * MS, to);
+            // Bad CRC on every frame from now on: rejected, then invalid by
+            // the strikes in its window; the last good values stay.
+            let other: &[f64] = if skip == 3 {
+                &[1.0, 1.0]
+            } else {
+                &[1.0, 1.0, 1.0]
+            };
+            for c in 3..7u8 {
+                let ts = t + u64::from(c) * 20 * MS;
+                all_but(&mut rx, Some(skip), c, ts, to);
+                let mut d = m.encode(other, c).unwrap().data().to_vec();
+                d[0] ^= 0x01;
+                rx.on_frame(&CanFrame::new(m.id, false, &d).unwrap(), ts, to);
+            }
+            let s = rx.state(t + 121 * MS, to);
+            assert!(!s.valid);
+            assert_eq!(
+                s.reason.as_deref(),
+                Some(&*format!("{}: wrong crc", m.name))
+            );
+            assert_eq!(rx.rx_crc_errors, 4);
+            assert_eq!(
+                (s.long_accel_mps2, s.driver_torque_nm, s.road_friction),
+                (
+                    before.long_accel_mps2,
+                    before.driver_torque_nm,
+                    before.road_friction
+                )
+            );
+            // Implausible values (outside the DBC's [min|max]) are not used.
+            let mut rx = RxStore::new(2, 2, 2);
+            for c in 0..3 {
+                all_five(&mut rx, c, t + u64::from(c) * 20 * MS, to);
+            }
+            let bad: &[f64] = if skip == 3 {
+                &[25.0, 0.0]
+            } else {
+                &[0.0, 10.0, 0.02]
+            };
+            rx.on_frame(&m.encode(bad, 3).unwrap(), t + 60 * MS, to);
+            assert_eq!(rx.rx_implausible, 1);
+            let s = rx.state(t + 61 * MS, to);
+            assert_eq!(s.status[skip], "implausible");
+            assert!(s
+                .reason
+                .unwrap()
+                .starts_with(&format!("{}: implausible", m.name)));
+            assert!(rx.last_error.as_deref().unwrap().starts_with(m.name));
+            assert!((s.long_accel_mps2.unwrap() + 3.21).abs() < 1e-9);
+            assert!((s.road_friction.unwrap() - 0.35).abs() < 1e-9);
+        }
     }
 
     #[test]

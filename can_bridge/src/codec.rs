@@ -232,16 +232,59 @@ pub const STEERING_STATE: Message = Message {
     ],
 };
 
+/// `VehicleAccel`: body-frame longitudinal and lateral acceleration at the
+/// centre of gravity (m/s^2, IMU).
+pub const VEHICLE_ACCEL: Message = Message {
+    name: "VehicleAccel",
+    id: 0x204,
+    len: 6,
+    data_id: 3092,
+    signals: &[
+        CRC,
+        COUNTER,
+        sig("LongAccel", 16, 16, true, 0.001, -20.0, 20.0),
+        sig("LatAccel", 32, 16, true, 0.001, -20.0, 20.0),
+    ],
+};
+
+/// `DriverDemand`: the driver's rear-axle torque request (Nm), the cruise
+/// set speed (m/s) and the road-friction estimate the vehicle publishes.
+pub const DRIVER_DEMAND: Message = Message {
+    name: "DriverDemand",
+    id: 0x205,
+    len: 8,
+    data_id: 3093,
+    signals: &[
+        CRC,
+        COUNTER,
+        sig("DriverTorque", 16, 16, true, 0.5, -8000.0, 8000.0),
+        sig("SetSpeed", 32, 16, true, 0.01, 0.0, 90.0),
+        sig("RoadFriction", 48, 8, false, 0.01, 0.05, 2.0),
+    ],
+};
+
 /// Every message of the DBC.
-pub const ALL_MESSAGES: [&Message; 4] = [
+pub const ALL_MESSAGES: [&Message; 6] = [
     &WHEEL_TORQUE_CMD,
     &VEHICLE_MOTION,
     &WHEEL_SPEEDS,
     &STEERING_STATE,
+    &VEHICLE_ACCEL,
+    &DRIVER_DEMAND,
 ];
 
-/// The received messages, in the order of [`crate::bridge::RxSlot`].
-pub const RX_MESSAGES: [&Message; 3] = [&VEHICLE_MOTION, &WHEEL_SPEEDS, &STEERING_STATE];
+/// Number of received messages.
+pub const N_RX: usize = 5;
+
+/// The received messages, in the order of [`crate::bridge::RX_NAMES`] and
+/// of `VehicleState::status`.
+pub const RX_MESSAGES: [&Message; N_RX] = [
+    &VEHICLE_MOTION,
+    &WHEEL_SPEEDS,
+    &STEERING_STATE,
+    &VEHICLE_ACCEL,
+    &DRIVER_DEMAND,
+];
 
 /// Safety state carried in `WheelTorqueCmd.Mode`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -429,6 +472,41 @@ mod tests {
         let f = encode_torque_cmd(&[-12.0, 100.0, 0.0, 4000.0], Mode::Hold, 3).unwrap();
         assert_eq!(&f.data()[1..], &data[1..]);
         assert!(e2e::crc_ok(f.data(), m.data_id));
+    }
+
+    /// Bytes produced by cantools 45.1 + `autosar-e2e` (counter 7) for the
+    /// two sensor messages added last; the Rust tables must agree.
+    #[test]
+    fn accel_and_driver_demand_match_cantools_example() {
+        let f = DRIVER_DEMAND.encode(&[-1234.5, 17.25, 0.35], 7).unwrap();
+        assert_eq!(f.data(), [0x18, 0x07, 0x5b, 0xf6, 0xbd, 0x06, 0x23, 0x00]);
+        let f = VEHICLE_ACCEL.encode(&[-3.21, 7.5], 7).unwrap();
+        assert_eq!(f.data(), [0x93, 0x07, 0x76, 0xf3, 0x4c, 0x1d]);
+        let mut out = [0.0; 2];
+        VEHICLE_ACCEL.decode_values(f.data(), &mut out);
+        assert!((out[0] + 3.21).abs() < 1e-12 && (out[1] - 7.5).abs() < 1e-12);
+        assert_eq!(VEHICLE_ACCEL.implausible(&out), None);
+        assert_eq!(
+            DRIVER_DEMAND.implausible(&[0.0, 10.0, 0.04]),
+            Some(("RoadFriction", 0.04))
+        );
+        assert_eq!(
+            DRIVER_DEMAND.implausible(&[0.0, -0.01, 1.0]),
+            Some(("SetSpeed", -0.01))
+        );
+    }
+
+    /// The receiver keeps at most four values per message.
+    #[test]
+    fn received_messages_fit_the_receive_slots() {
+        for m in RX_MESSAGES {
+            assert!(m.signals.len() - 2 <= 4, "{}", m.name);
+            assert!(m.len <= 8, "{}", m.name);
+        }
+        let mut ids: Vec<u32> = ALL_MESSAGES.iter().map(|m| m.id).collect();
+        ids.sort_unstable();
+        ids.dedup();
+        assert_eq!(ids.len(), ALL_MESSAGES.len());
     }
 
     #[test]

@@ -529,6 +529,11 @@ impl PyBridge {
             "wheel_speeds_radps",
             s.wheel_speeds_radps.map(|w| (w[0], w[1], w[2], w[3])),
         )?;
+        d.set_item("long_accel_mps2", s.long_accel_mps2)?;
+        d.set_item("lat_accel_mps2", s.lat_accel_mps2)?;
+        d.set_item("driver_torque_nm", s.driver_torque_nm)?;
+        d.set_item("set_speed_mps", s.set_speed_mps)?;
+        d.set_item("road_friction", s.road_friction)?;
         d.set_item("age_ms", s.age_ms)?;
         let status = PyDict::new(py);
         for (n, st) in RX_NAMES.iter().zip(s.status) {

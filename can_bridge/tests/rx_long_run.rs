@@ -1,4 +1,4 @@
-//! A long randomised run of the receive side (`RxStore`): three healthy
+//! A long randomised run of the receive side (`RxStore`): five healthy
 //! sensors at 20 ms, with faults injected at random rates in random
 //! segments: frames lost, repeated (frozen), bad CRC, wrong length, counter
 //! 15, an intruder's out-of-sequence pair, a second source repeating the last
@@ -16,7 +16,9 @@
 //! `CAN_BRIDGE_RX_INPUTS`) is `cargo test --release -- --ignored long_randomised`.
 
 use can_bridge::bridge::RxStore;
-use can_bridge::codec::{STEERING_STATE, VEHICLE_MOTION, WHEEL_SPEEDS};
+use can_bridge::codec::{
+    DRIVER_DEMAND, N_RX, RX_MESSAGES, STEERING_STATE, VEHICLE_ACCEL, VEHICLE_MOTION, WHEEL_SPEEDS,
+};
 use can_bridge::CanFrame;
 
 const MS: u64 = 1_000_000;
@@ -38,20 +40,27 @@ impl Rng {
     }
 }
 
+/// Each message carries `value` in one signal, scaled so that healthy and
+/// faulty values both lie within the signal's plausibility bounds (only the
+/// implausible fault leaves them); [`reported`] undoes the scaling.
 fn frame(msg: usize, value: f64, counter: u8) -> CanFrame {
     match msg {
         0 => VEHICLE_MOTION.encode(&[value, 0.5, 0.1], counter),
         1 => WHEEL_SPEEDS.encode(&[value; 4], counter),
-        _ => STEERING_STATE.encode(&[value / 100.0], counter),
+        2 => STEERING_STATE.encode(&[value / 100.0], counter),
+        3 => VEHICLE_ACCEL.encode(&[value / 5.0, -1.0], counter),
+        _ => DRIVER_DEMAND.encode(&[value * 50.0, 20.0, 0.8], counter),
     }
     .unwrap()
 }
 
-fn reported(st: &can_bridge::VehicleState) -> [Option<f64>; 3] {
+fn reported(st: &can_bridge::VehicleState) -> [Option<f64>; N_RX] {
     [
         st.long_speed_mps,
         st.wheel_speeds_radps.map(|w| w[0]),
         st.steering_angle_rad.map(|s| s * 100.0),
+        st.long_accel_mps2.map(|a| a * 5.0),
+        st.driver_torque_nm.map(|t| t / 50.0),
     ]
 }
 
@@ -61,13 +70,13 @@ fn run(inputs: u64, seed: u64) -> (u64, u64) {
     let mut rx = RxStore::new(2, 2, 2);
     let mut rng = Rng(seed | 1);
     let mut now = 1_000 * MS;
-    let mut counter = [0u8; 3];
+    let mut counter = [0u8; N_RX];
     // The counter the receiver last anchored or accepted (what a fault must
     // be out of sequence with, or equal to, to be a fault at all).
-    let mut sent = [0u8; 3];
-    let mut last_good = [f64::NAN; 3];
+    let mut sent = [0u8; N_RX];
+    let mut last_good = [f64::NAN; N_RX];
     // Whether the last frame fed for each message was healthy and in sequence.
-    let mut last_was_good = [false; 3];
+    let mut last_was_good = [false; N_RX];
     let mut fault_rate = 0.0;
     let mut n = 0u64;
     let mut valid = 0u64;
@@ -78,8 +87,8 @@ fn run(inputs: u64, seed: u64) -> (u64, u64) {
         if rng.below(3000) == 0 {
             now += 300 * MS; // a gap longer than the state timeout
         }
-        now += 20 * MS / 3;
-        let m = rng.below(3) as usize;
+        now += 20 * MS / N_RX as u64;
+        let m = rng.below(N_RX as u64) as usize;
         let good_value = (rng.unit() * 40.0 * 10.0).round() / 10.0;
         let bad_value = 60.0 + (rng.unit() * 29.0).round();
         let mut feed = |rx: &mut RxStore, f: &CanFrame| {
@@ -114,7 +123,7 @@ fn run(inputs: u64, seed: u64) -> (u64, u64) {
                 4 => {
                     let mut d = frame(m, bad_value, 0).data().to_vec();
                     d[1] |= 0x0F;
-                    d[0] = can_bridge::e2e::p01_crc([3089, 3090, 3091][m], &d);
+                    d[0] = can_bridge::e2e::p01_crc(RX_MESSAGES[m].data_id, &d);
                     feed(
                         &mut rx,
                         &CanFrame::new(0x201 + m as u32, false, &d).unwrap(),
@@ -131,7 +140,7 @@ fn run(inputs: u64, seed: u64) -> (u64, u64) {
                 _ => {
                     // implausible: beyond the DBC's bounds (wheel speed < -60 etc.)
                     counter[m] = (counter[m] + 1) % 15;
-                    let v = [120.0, -100.0, -150.0][m];
+                    let v = [120.0, -100.0, -150.0, 120.0, -200.0][m];
                     feed(&mut rx, &frame(m, v, counter[m]));
                     sent[m] = counter[m];
                 }

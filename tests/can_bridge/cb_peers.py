@@ -144,3 +144,24 @@ def state_message(
 MOTION = {"LongSpeed": 12.34, "LatSpeed": -0.56, "YawRate": 0.123}
 WHEELS = {"WheelSpeedFL": 40.1, "WheelSpeedFR": 40.2, "WheelSpeedRL": 39.9, "WheelSpeedRR": -1.5}
 STEER = {"SteeringAngle": 0.0456}
+ACCEL = {"LongAccel": -3.21, "LatAccel": 7.5}
+DRIVER = {"DriverTorque": -1234.5, "SetSpeed": 17.25, "RoadFriction": 0.35}
+
+# Every message the bridge receives, with healthy values: latest_state() is
+# valid only while all of them arrive sound.
+SENSORS: tuple[tuple[str, dict[str, float]], ...] = (
+    ("VehicleMotion", MOTION),
+    ("WheelSpeeds", WHEELS),
+    ("SteeringState", STEER),
+    ("VehicleAccel", ACCEL),
+    ("DriverDemand", DRIVER),
+)
+
+
+def send_sensors(
+    bus: can.BusABC, counter: int, *, skip: tuple[str, ...] = (), corrupt: bool = False
+) -> None:
+    """One frame of every received message but ``skip``, all with ``counter``."""
+    for name, values in SENSORS:
+        if name not in skip:
+            bus.send(state_message(name, values, counter, corrupt=corrupt))

@@ -34,7 +34,7 @@ def test_dbc_is_installed_and_describes_the_frames() -> None:
     }
     received = {
         s.name
-        for n in ("VehicleMotion", "WheelSpeeds", "SteeringState")
+        for n in ("VehicleMotion", "WheelSpeeds", "SteeringState", "VehicleAccel", "DriverDemand")
         for s in d.get_message_by_name(n).signals
     }
     for sig in (
@@ -46,8 +46,21 @@ def test_dbc_is_installed_and_describes_the_frames() -> None:
         "WheelSpeedFR",
         "WheelSpeedRL",
         "WheelSpeedRR",
+        "LongAccel",
+        "LatAccel",
+        "DriverTorque",
+        "SetSpeed",
+        "RoadFriction",
     ):
         assert sig in received
+    accel = d.get_message_by_name("VehicleAccel")
+    driver = d.get_message_by_name("DriverDemand")
+    assert (accel.frame_id, accel.length, data_id("VehicleAccel")) == (0x204, 6, 3092)
+    assert (driver.frame_id, driver.length, data_id("DriverDemand")) == (0x205, 8, 3093)
+    assert accel.cycle_time == driver.cycle_time == 20
+    friction = driver.get_signal_by_name("RoadFriction")
+    assert (friction.minimum, friction.maximum, friction.scale) == (0.05, 2, 0.01)
+    assert "friction estimate" in friction.comment
     ids = [data_id(m.name) for m in d.messages]
     assert len(set(ids)) == len(ids) and all(i > 0 for i in ids)
     for m in d.messages:
@@ -91,7 +104,15 @@ def _random_values(msg, rng: random.Random) -> dict[str, float]:
 
 
 @pytest.mark.parametrize(
-    "name", ["WheelTorqueCmd", "VehicleMotion", "WheelSpeeds", "SteeringState"]
+    "name",
+    [
+        "WheelTorqueCmd",
+        "VehicleMotion",
+        "WheelSpeeds",
+        "SteeringState",
+        "VehicleAccel",
+        "DriverDemand",
+    ],
 )
 def test_rust_packing_matches_cantools_byte_for_byte(name: str) -> None:
     msg = db().get_message_by_name(name)

@@ -9,14 +9,17 @@ import threading
 import time
 
 import can
+import e2e.p01
 import pytest
 from cb_peers import (
+    DRIVER,
     MOTION,
     STEER,
-    WHEELS,
     CmdChecker,
+    db,
     recv_cmds,
     recv_until,
+    send_sensors,
     slcan_peer,
     state_message,
 )
@@ -166,9 +169,7 @@ def test_received_state_checks_crc_counter_and_timeout() -> None:
         st = bridge.latest_state()
         assert st["valid"] is False and st["long_speed_mps"] is None
         for c in range(3):
-            bus.send(state_message("VehicleMotion", MOTION, c))
-            bus.send(state_message("WheelSpeeds", WHEELS, c))
-            bus.send(state_message("SteeringState", STEER, c))
+            send_sensors(bus, c)
             time.sleep(0.02)
         time.sleep(0.1)
         st = bridge.latest_state()
@@ -178,6 +179,8 @@ def test_received_state_checks_crc_counter_and_timeout() -> None:
         assert st["yaw_rate_radps"] == pytest.approx(0.123)
         assert st["steering_angle_rad"] == pytest.approx(0.0456)
         assert st["wheel_speeds_radps"] == pytest.approx((40.1, 40.2, 39.9, -1.5))
+        assert st["long_accel_mps2"] == pytest.approx(-3.21)
+        assert st["road_friction"] == pytest.approx(0.35)
         # Bad CRC: rejected and counted, value unchanged.
         bus.send(state_message("VehicleMotion", {**MOTION, "LongSpeed": 89.0}, 3, corrupt=True))
         # Counter 2 again with other data (a second sender): rejected and counted.
@@ -198,6 +201,84 @@ def test_received_state_checks_crc_counter_and_timeout() -> None:
         st = bridge.latest_state()
         assert st["valid"] is False and st["age_ms"] > 200
         assert bridge.stats()["state_valid"] is False
+
+
+def _e2e_frame(name: str, values: dict[str, float], counter: int) -> can.Message:
+    """Framed by cantools from the DBC at ``can_bridge.dbc_path()`` (cb_peers.db)
+    and protected by autosar-e2e (E2E Profile 1 CRC over the Data ID, the
+    counter in the low nibble of byte 1)."""
+    msg = db().get_message_by_name(name)
+    data = bytearray(msg.encode({"CRC": 0, "Counter": counter, **values}))
+    did = int(msg.dbc.attributes["E2EDataID"].value)
+    e2e.p01.e2e_p01_protect(data, did, increment_counter=False)
+    assert e2e.p01.e2e_p01_check(data, did)
+    return can.Message(arbitration_id=msg.frame_id, is_extended_id=False, data=data)
+
+
+def test_accel_and_driver_demand_are_received_and_required() -> None:
+    """VehicleAccel and DriverDemand, encoded by cantools from
+    ``can_bridge.dbc_path()`` and E2E-protected by autosar-e2e, come out of
+    ``latest_state()`` decoded; the state is valid only with both sound."""
+    accel = {"LongAccel": -3.21, "LatAccel": 7.5}
+    driver = {"DriverTorque": -1234.5, "SetSpeed": 17.25, "RoadFriction": 0.35}
+    bridge = can_bridge.Bridge("slcan-pty:", period_ms=20, state_timeout_ms=200)
+    with slcan_peer(bridge) as bus:
+        # Everything but DriverDemand: invalid, and the reason says which.
+        for c in range(3):
+            send_sensors(bus, c, skip=("VehicleAccel", "DriverDemand"))
+            bus.send(_e2e_frame("VehicleAccel", accel, c))
+            time.sleep(0.02)
+        time.sleep(0.05)
+        st = bridge.latest_state()
+        assert st["valid"] is False
+        assert st["reason"] == "DriverDemand: no data"
+        assert st["status"]["DriverDemand"] == "no data"
+        assert st["status"]["VehicleAccel"] == "ok"
+        assert st["driver_torque_nm"] is None and st["age_ms"] is None
+        assert st["long_accel_mps2"] == pytest.approx(-3.21)
+        assert st["lat_accel_mps2"] == pytest.approx(7.5)
+        # All five: valid, with the new values decoded.
+        for c in range(3, 7):
+            send_sensors(bus, c, skip=("VehicleAccel", "DriverDemand"))
+            bus.send(_e2e_frame("VehicleAccel", accel, c))
+            bus.send(_e2e_frame("DriverDemand", driver, c))
+            time.sleep(0.02)
+        time.sleep(0.05)
+        st = bridge.latest_state()
+        assert st["valid"] is True, st
+        assert st["reason"] is None
+        assert set(st["status"]) == {
+            "VehicleMotion",
+            "WheelSpeeds",
+            "SteeringState",
+            "VehicleAccel",
+            "DriverDemand",
+        }
+        assert st["long_accel_mps2"] == pytest.approx(-3.21)
+        assert st["lat_accel_mps2"] == pytest.approx(7.5)
+        assert st["driver_torque_nm"] == pytest.approx(-1234.5)
+        assert st["set_speed_mps"] == pytest.approx(17.25)
+        assert st["road_friction"] == pytest.approx(0.35)
+        # A corrupt VehicleAccel (CRC broken): not used, and the state is invalid.
+        bad = _e2e_frame("VehicleAccel", {"LongAccel": 9.0, "LatAccel": 9.0}, 7)
+        bad.data[3] ^= 0x40
+        send_sensors(bus, 7, skip=("VehicleAccel",))
+        bus.send(bad)
+        time.sleep(0.05)
+        st = bridge.latest_state()
+        assert st["valid"] is False
+        assert st["reason"] == "VehicleAccel: wrong crc"
+        assert st["long_accel_mps2"] == pytest.approx(-3.21)
+        assert bridge.stats()["rx_crc_errors"] == 1
+        # A RoadFriction outside the DBC's [0.05|2]: implausible, not used.
+        send_sensors(bus, 8, skip=("DriverDemand",))
+        bus.send(state_message("DriverDemand", {**DRIVER, "RoadFriction": 0.02}, 8, strict=False))
+        time.sleep(0.05)
+        st = bridge.latest_state()
+        assert st["valid"] is False
+        assert "DriverDemand: implausible" in st["reason"], st
+        assert st["road_friction"] == pytest.approx(0.35)
+        assert "RoadFriction" in bridge.stats()["last_rx_error"]
 
 
 def test_stop_sends_safe_frames_before_closing() -> None:

@@ -10,7 +10,7 @@ import threading
 import time
 
 import pytest
-from cb_peers import MOTION, STEER, WHEELS, CmdChecker, db, protect
+from cb_peers import SENSORS, CmdChecker, db, protect
 
 import can_bridge
 
@@ -62,11 +62,7 @@ class Server:
             while not self.stop.is_set():
                 if time.monotonic() >= next_state:
                     frames = b""
-                    for name, vals in (
-                        ("VehicleMotion", MOTION),
-                        ("WheelSpeeds", WHEELS),
-                        ("SteeringState", STEER),
-                    ):
+                    for name, vals in SENSORS:
                         fid = db().get_message_by_name(name).frame_id
                         now = time.time()
                         frames += b"< frame %03X %d.%06d %s >" % (
@@ -130,6 +126,8 @@ def test_socketcand_transport_end_to_end() -> None:
     assert st["valid"] is True
     assert st["yaw_rate_radps"] == pytest.approx(0.123)
     assert st["wheel_speeds_radps"] == pytest.approx((40.1, 40.2, 39.9, -1.5))
+    assert st["lat_accel_mps2"] == pytest.approx(7.5)
+    assert st["set_speed_mps"] == pytest.approx(17.25)
     s = bridge.stats()
     assert s["rx_crc_errors"] == 0 and s["rx_counter_errors"] == 0 and s["rx_malformed"] == 0
 

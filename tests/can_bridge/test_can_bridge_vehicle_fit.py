@@ -20,11 +20,12 @@ from cb_fault_peers import (
 )
 from cb_peers import (
     MOTION,
+    SENSORS,
     STEER,
-    WHEELS,
     CmdChecker,
     db,
     recv_until,
+    send_sensors,
     state_message,
 )
 
@@ -134,11 +135,9 @@ def test_f1_no_stale_frames_from_a_stalled_socketcand_server() -> None:
 # ---------------------------------------------------------------- finding 2
 
 
-def _send_good(bus: can.BusABC, counters, motion=MOTION) -> None:
+def _send_good(bus: can.BusABC, counters) -> None:
     for c in counters:
-        bus.send(state_message("VehicleMotion", motion, c % 15))
-        bus.send(state_message("WheelSpeeds", WHEELS, c % 15))
-        bus.send(state_message("SteeringState", STEER, c % 15))
+        send_sensors(bus, c % 15)
         time.sleep(0.02)
 
 
@@ -154,7 +153,7 @@ def test_f2_a_frozen_sensor_repeating_its_frames_is_invalid() -> None:
         _send_good(bus, range(6))
         time.sleep(0.05)
         assert bridge.latest_state()["valid"] is True
-        frozen = [state_message(n, v, 5) for n, v in (("VehicleMotion", MOTION), ("WheelSpeeds", WHEELS), ("SteeringState", STEER))]  # fmt: skip
+        frozen = [state_message(n, v, 5) for n, v in SENSORS]
         samples = []
         for k in range(25):
             for m in frozen:
@@ -197,8 +196,7 @@ def test_f2_two_sources_on_one_id_are_invalid_and_neither_is_believed() -> None:
         for k in range(40):
             for c, vals in ((k, MOTION), (k + 7, other)):  # out of phase
                 bus.send(state_message("VehicleMotion", vals, c % 15))
-            bus.send(state_message("WheelSpeeds", WHEELS, k % 15))
-            bus.send(state_message("SteeringState", STEER, k % 15))
+            send_sensors(bus, k % 15, skip=("VehicleMotion",))
             time.sleep(0.02)
             st = bridge.latest_state()
             if k >= 4:
@@ -207,8 +205,7 @@ def test_f2_two_sources_on_one_id_are_invalid_and_neither_is_believed() -> None:
         for k in range(40, 80):  # in phase: same counter, different payload
             for vals in (MOTION, other):
                 bus.send(state_message("VehicleMotion", vals, k % 15))
-            bus.send(state_message("WheelSpeeds", WHEELS, k % 15))
-            bus.send(state_message("SteeringState", STEER, k % 15))
+            send_sensors(bus, k % 15, skip=("VehicleMotion",))
             time.sleep(0.02)
             if k >= 44:
                 samples.append(bridge.latest_state()["valid"])
@@ -227,8 +224,7 @@ def test_f2_mostly_bad_crc_is_invalid() -> None:
         samples = []
         for k in range(60):
             corrupt = k % 10 != 0
-            for n, v in (("VehicleMotion", MOTION), ("WheelSpeeds", WHEELS), ("SteeringState", STEER)):  # fmt: skip
-                bus.send(state_message(n, v, k % 15, corrupt=corrupt))
+            send_sensors(bus, k % 15, corrupt=corrupt)
             time.sleep(0.02)
             if k >= 10:
                 samples.append(bridge.latest_state()["valid"])

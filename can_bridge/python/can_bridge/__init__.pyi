@@ -30,6 +30,8 @@ class RxStatus(TypedDict):
     VehicleMotion: str
     WheelSpeeds: str
     SteeringState: str
+    VehicleAccel: str
+    DriverDemand: str
 
 class VehicleState(TypedDict):
     valid: bool
@@ -38,6 +40,11 @@ class VehicleState(TypedDict):
     yaw_rate_radps: float | None
     steering_angle_rad: float | None
     wheel_speeds_radps: tuple[float, float, float, float] | None
+    long_accel_mps2: float | None
+    lat_accel_mps2: float | None
+    driver_torque_nm: float | None
+    set_speed_mps: float | None
+    road_friction: float | None
     age_ms: float | None
     status: RxStatus
     reason: str | None

@@ -1,0 +1,462 @@
+"""``ampc run``, ``ampc plant``, ``ampc export``, ``ampc replay``: deployment.
+
+``ampc run --channel URI --scenario NAME --out DIR`` runs the compiled
+controller at 20 Hz next to the CAN bridge (``--with-plant`` also starts
+``ampc plant`` on the bridge's fresh pseudo-terminal: the whole demo in one
+line); ``ampc plant`` is the simulated vehicle on the other end of the bus;
+``ampc export`` writes the controller step as a ``jax.export`` artefact that
+``ampc run --artefact`` checks and runs; ``ampc replay`` re-runs a logged run
+offline, bit for bit, and with other settings (docs/runtime.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .args import arg_type, fail, flag_error, output_dir, positive_finite
+
+__all__ = ["add_runtime_commands"]
+
+_FLAGS = {"formulation": "--formulation", "duration": "--duration", "scenario": "--scenario"}
+
+
+def _x64() -> None:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+
+
+def _commit() -> str | None:
+    try:
+        root = Path(__file__).resolve().parents[2]
+        out = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+        )
+        return out.stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def _config(args: argparse.Namespace) -> Any:
+    from ..closed_loop import config_for
+    from ..vehicle import SCENARIOS
+
+    if args.scenario not in SCENARIOS:
+        raise ValueError(
+            f"scenario: unknown scenario {args.scenario!r}; expected one of {sorted(SCENARIOS)}"
+        )
+    kw: dict[str, Any] = {"shadow": False}
+    if args.formulation is not None:
+        kw["formulation"] = args.formulation
+    return config_for(SCENARIOS[args.scenario], **kw)
+
+
+def _faults(texts: list[str] | None, kinds: tuple[str, ...]) -> tuple[Any, ...]:
+    from ..runtime.faults import parse_fault
+
+    try:
+        return tuple(parse_fault(t, kinds) for t in texts or ())
+    except ValueError as exc:
+        raise ValueError(f"fault: {exc}") from None
+
+
+def _golden_bus(spec: Any) -> np.ndarray:
+    """The bus vector of the scenario's first step (the golden input of an artefact)."""
+    import jax.numpy as jnp
+
+    from ..runtime.signals import bus_vector
+    from ..vehicle.manoeuvres import (
+        DriverParams,
+        driver_step,
+        initial_driver_state,
+        initial_plant_state,
+    )
+    from ..vehicle.params import VehicleParams
+
+    sc = spec.scenario
+    ps = initial_plant_state(sc, VehicleParams(), jnp.float64)
+    _, steer, T, v_ref = driver_step(initial_driver_state(jnp.float64), ps, 0.0, sc, DriverParams())
+    return bus_vector(ps, steer, T, v_ref, float(sc.mu))
+
+
+def _cpu_list(text: str) -> tuple[int, ...]:
+    import os
+
+    try:
+        cpus = tuple(int(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected CPU numbers like 0 or 1,2, got {text!r}"
+        ) from None
+    have = os.sched_getaffinity(0)
+    if not cpus or any(c not in have for c in cpus):
+        raise argparse.ArgumentTypeError(f"expected CPUs among {sorted(have)}, got {text!r}")
+    return cpus
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """``ampc run``: the controller at 20 Hz next to the bridge."""
+    import os
+
+    if args.cpus:
+        os.sched_setaffinity(0, args.cpus)
+    _x64()
+    import jax.numpy as jnp
+
+    from ..runtime.faults import CONTROLLER_FAULTS
+    from ..runtime.runner import RunOptions, run_controller
+    from ..runtime.step import RuntimeStep
+
+    try:
+        cfg = _config(args)
+        faults = _faults(args.fault, CONTROLLER_FAULTS)
+        step = RuntimeStep(cfg, "float32" if args.float32 else "float64")
+    except ValueError as exc:
+        return fail(flag_error(exc, _FLAGS))
+    if args.with_plant and args.channel != "slcan-pty:":
+        return fail("--with-plant: needs --channel slcan-pty: (the plant opens its pty)")
+    problem = output_dir(args.out)
+    if problem:
+        return fail(problem)
+    out = Path(args.out)
+    t0 = time.perf_counter()
+    if args.artefact:
+        from ..runtime.artefact import ArtefactError, load_artefact
+
+        try:
+            art = load_artefact(args.artefact, step.config_hash())
+        except ArtefactError as exc:
+            return fail(f"--artefact: {exc}")
+        fn, leaves = art.compiled(), art.init_leaves()
+        source = f"artefact {args.artefact}"
+    else:
+        fn, leaves = step.compiled(), step.init_leaves()
+        source = "compiled in process"
+    print(f"controller step ready ({source}, {time.perf_counter() - t0:.1f} s)", flush=True)
+    duration = cfg_duration(args, cfg)
+    plant_cmd = None
+    if args.with_plant:
+        plant_cmd = [
+            sys.executable,
+            "-m",
+            "ampc_jax.cli",
+            "plant",
+            "--channel",
+            "slcan:{pty}",
+            "--scenario",
+            args.scenario,
+            "--duration",
+            f"{duration:g}",
+            "--out",
+            str(out / "plant"),
+            "--quiet",
+        ]
+        for f in args.plant_fault or ():
+            plant_cmd += ["--fault", f]
+        if args.plant_cpus:
+            plant_cmd = ["taskset", "-c", ",".join(map(str, args.plant_cpus)), *plant_cmd]
+    meta = {
+        "scenario": args.scenario,
+        "formulation": cfg.formulation,
+        "dtype": step.dtype,
+        "config_hash": step.config_hash(),
+        "source": source,
+        "channel": args.channel,
+        "duration_s": duration,
+        "faults": list(args.fault or ()),
+        "commit": _commit(),
+        "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+    }
+    options = RunOptions(duration=duration, lead_ms=args.lead_ms, faults=faults)
+    progress = None if args.quiet else (lambda line: print(line, flush=True))
+    try:
+        log = run_controller(
+            fn,
+            leaves,
+            args.channel,
+            out,
+            options,
+            meta=meta,
+            plant_cmd=plant_cmd,
+            progress=progress,
+            dtype=step.jnp_dtype if not args.artefact else jnp.dtype(art.manifest["dtype"]),
+        )
+    except (TimeoutError, RuntimeError, OSError, ValueError) as exc:
+        return fail(f"run: {exc}", 1)
+    s = log.summary
+    print(
+        f"ran {s['ticks']} ticks: sent {s['sent']}, misses {s['misses']}, skipped "
+        f"{s['skipped'] or 0}; compute median {s['compute_ms_median']} ms, p99 "
+        f"{s['compute_ms_p99']} ms; bridge {s['bridge']['safety_state']}"
+    )
+    print(f"wrote {out / 'ticks.parquet'}, {out / 'run.json'}, {out / 'bridge.log'}")
+    return 0
+
+
+def cfg_duration(args: argparse.Namespace, cfg: Any) -> float:
+    from ..vehicle import SCENARIOS
+
+    return float(args.duration if args.duration is not None else SCENARIOS[args.scenario].duration)
+
+
+def cmd_plant(args: argparse.Namespace) -> int:
+    """``ampc plant``: the simulated vehicle on the bus."""
+    _x64()
+    from ..runtime.faults import SENSOR_FAULTS
+    from ..runtime.plant_node import PlantNode, write_report
+    from ..vehicle import SCENARIOS
+
+    if args.scenario not in SCENARIOS:
+        return fail(
+            f"--scenario: unknown scenario {args.scenario!r}; expected one of {sorted(SCENARIOS)}"
+        )
+    try:
+        faults = _faults(args.fault, SENSOR_FAULTS)
+    except ValueError as exc:
+        return fail(flag_error(exc, {"fault": "--fault"}))
+    problem = output_dir(args.out)
+    if problem:
+        return fail(problem)
+    out = Path(args.out)
+    node = PlantNode(
+        args.channel,
+        args.scenario,
+        args.duration,
+        cmd_timeout_ms=args.cmd_timeout_ms,
+        faults=faults,
+        log_path=out / "plant_bus.log",
+    )
+    progress = None if args.quiet else (lambda t: print(f"plant t {t:5.1f} s", flush=True))
+    try:
+        rep = node.run(progress)
+    except (TimeoutError, OSError) as exc:
+        return fail(f"plant: {exc}", 1)
+    finally:
+        pass
+    write_report(rep, out)
+    s = rep.summary
+    print(
+        f"plant: {s['frames']} torque frames ({s['frames_bad']} bad), modes {s['modes']}, "
+        f"period p99 deviation {s['period_dev_ms_p99']} ms; wrote {out}"
+    )
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    """``ampc export``: the controller step as a jax.export artefact."""
+    _x64()
+    from ..runtime.artefact import export_step
+    from ..runtime.step import RuntimeStep
+    from ..vehicle import SCENARIOS
+
+    try:
+        cfg = _config(args)
+        step = RuntimeStep(cfg, "float32" if args.float32 else "float64")
+    except ValueError as exc:
+        return fail(flag_error(exc, _FLAGS))
+    path = Path(args.out)
+    if path.parent and not path.parent.exists():
+        return fail(f"--out {args.out}: the directory {path.parent} does not exist")
+    m = export_step(step, _golden_bus(SCENARIOS[args.scenario]), path, scenario=args.scenario)
+    print(
+        f"wrote {path}: {m['formulation']} {m['dtype']}, config {m['config_hash'][:12]}, "
+        f"calling convention {m['calling_convention_version']}, jax {m['jax']}"
+    )
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    """``ampc replay``: a logged run re-run offline, and with other settings."""
+    _x64()
+    from ..runtime.replay import replay_run
+
+    problem = output_dir(args.out)
+    if problem:
+        return fail(problem)
+    try:
+        rho = None
+        if args.rho_scale:
+            rho = tuple(float(x) for x in args.rho_scale.split(","))
+        res = replay_run(
+            Path(args.log),
+            Path(args.out),
+            rho_scales=rho,
+            formulations=tuple(args.formulation or ()),
+            float32=args.float32,
+        )
+    except (OSError, ValueError) as exc:
+        return fail(f"replay: {exc}")
+    d = res["determinism"]
+    print(
+        f"replayed {d['ticks']} ticks: {d['identical']} commands identical bit for bit, "
+        f"{d['differ']} differ (max |dT| {d['max_abs_diff_nm']:g} Nm)"
+    )
+    for v in res["variants"]:
+        print(
+            f"  {v['variant']:<28} max |dT| {v['max_abs_diff_nm']:8.2f} Nm, rms "
+            f"{v['rms_diff_nm']:7.2f} Nm, iterations mean {v['iterations_mean']:.1f}"
+        )
+    print(f"wrote {Path(args.out) / 'replay.json'}, {Path(args.out) / 'replay.parquet'}")
+    return 0 if d["differ"] == 0 else 1
+
+
+def add_runtime_commands(sub: Any) -> None:
+    """Register ``run``, ``plant``, ``export`` and ``replay``."""
+    from ..closed_loop import FORMULATIONS
+    from ..runtime.faults import CONTROLLER_FAULTS, SENSOR_FAULTS
+
+    forms = [f for f in FORMULATIONS if f != "none"]
+    r = sub.add_parser(
+        "run",
+        help="the controller at 20 Hz next to the CAN bridge",
+        description="Run the compiled controller every 50 ms next to can_bridge: latest "
+        "valid state in, first-step torques out; nothing new is sent on a stale or invalid "
+        "state or a failed step (the bridge's watchdog then holds and releases).",
+    )
+    r.add_argument(
+        "--channel",
+        required=True,
+        help="the bridge's channel: socketcan:IFACE, slcan:PATH[@BAUD], slcan-pty: or "
+        "socketcand:HOST:PORT/BUS (required)",
+    )
+    r.add_argument("--scenario", required=True, help="the scenario the controller is set up for")
+    r.add_argument(
+        "--formulation",
+        choices=forms,
+        default=None,
+        help="the controller's formulation (default: the scenario's, local_explicit)",
+    )
+    r.add_argument(
+        "--duration",
+        type=arg_type(positive_finite),
+        default=None,
+        help="seconds of actuation (default: the scenario's duration)",
+    )
+    r.add_argument(
+        "--artefact",
+        default=None,
+        help="run an `ampc export` artefact (default: compile in process)",
+    )
+    r.add_argument("--float32", action="store_true", help="float32 step (default: float64)")
+    r.add_argument(
+        "--with-plant",
+        action="store_true",
+        help="also start `ampc plant` on the bridge's pseudo-terminal (needs "
+        "--channel slcan-pty:; its logs go to OUT/plant) (default: off)",
+    )
+    r.add_argument(
+        "--lead-ms",
+        type=arg_type(positive_finite),
+        default=25.0,
+        help="start each tick this long before the bridge's tick, in ms: room for the "
+        "state read, the step and the hand-over (default: 25)",
+    )
+    r.add_argument(
+        "--fault",
+        action="append",
+        metavar="KIND@START:END",
+        help=f"inject a controller fault, KIND one of {', '.join(CONTROLLER_FAULTS)} "
+        "(seconds of actuation; repeatable; default: none)",
+    )
+    r.add_argument(
+        "--plant-fault",
+        action="append",
+        metavar="KIND@START:END",
+        help=f"with --with-plant: a sensor fault of the plant, KIND one of "
+        f"{', '.join(SENSOR_FAULTS)} (default: none)",
+    )
+    r.add_argument(
+        "--cpus",
+        type=_cpu_list,
+        default=None,
+        help="pin the runtime (controller and bridge) to these CPUs, e.g. 1 or 2,3 "
+        "(default: no pinning)",
+    )
+    r.add_argument(
+        "--plant-cpus",
+        type=_cpu_list,
+        default=None,
+        help="with --with-plant: pin the plant to these CPUs (default: no pinning)",
+    )
+    r.add_argument("--quiet", action="store_true", help="no progress line (default: one a second)")
+    r.add_argument("--out", default="run", help="output directory (default: run)")
+    r.set_defaults(func=cmd_run)
+
+    p = sub.add_parser(
+        "plant",
+        help="the simulated vehicle on the other end of the bus (python-can, cantools)",
+        description="Integrate the nonlinear plant in real time with the scenario's driver, "
+        "publish the state messages every 20 ms with E2E protection, apply the torque "
+        "frames received (zero after --cmd-timeout-ms of silence).",
+    )
+    p.add_argument(
+        "--channel", required=True, help="slcan:PATH, the pty or serial device (required)"
+    )
+    p.add_argument("--scenario", required=True, help="the manoeuvre (required)")
+    p.add_argument(
+        "--duration",
+        type=arg_type(positive_finite),
+        default=None,
+        help="seconds of manoeuvre (default: the scenario's duration)",
+    )
+    p.add_argument(
+        "--cmd-timeout-ms",
+        type=arg_type(positive_finite),
+        default=200.0,
+        help="silence after which the plant applies zero torque (default: 200)",
+    )
+    p.add_argument(
+        "--fault",
+        action="append",
+        metavar="KIND@START:END",
+        help=f"inject a sensor fault, KIND one of {', '.join(SENSOR_FAULTS)} (seconds of "
+        "manoeuvre; repeatable; default: none)",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress line (default: one a second)")
+    p.add_argument("--out", default="plant", help="output directory (default: plant)")
+    p.set_defaults(func=cmd_plant)
+
+    e = sub.add_parser(
+        "export",
+        help="the controller step as a jax.export artefact with a manifest",
+        description="Write the compiled controller step (serialized StableHLO) and a "
+        "manifest (versions, configuration hash, shapes, a golden input/output pair).",
+    )
+    e.add_argument("--scenario", required=True, help="the scenario the controller is set up for")
+    e.add_argument("--formulation", choices=forms, default=None, help="(default: local_explicit)")
+    e.add_argument("--float32", action="store_true", help="float32 step (default: float64)")
+    e.add_argument("--out", required=True, help="the artefact file to write (required)")
+    e.set_defaults(func=cmd_export)
+
+    p = sub.add_parser(
+        "replay",
+        help="re-run a logged run offline, bit for bit and with other settings",
+        description="Re-run the controller step on the states `ampc run` logged: the "
+        "determinism check (every command reproduced bit for bit), then the same states "
+        "with other rho scales (one vmapped batch), formulations or float32.",
+    )
+    p.add_argument("log", help="the run's output directory (with ticks.parquet and run.json)")
+    p.add_argument(
+        "--rho-scale",
+        default=None,
+        help="comma-separated rho scales to replay in one vmapped batch (default: none)",
+    )
+    p.add_argument(
+        "--formulation",
+        action="append",
+        choices=forms,
+        help="also replay with this formulation (repeatable; default: none)",
+    )
+    p.add_argument("--float32", action="store_true", help="also replay in float32 (default: off)")
+    p.add_argument("--out", default="replay", help="output directory (default: replay)")
+    p.set_defaults(func=cmd_replay)

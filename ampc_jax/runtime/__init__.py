@@ -1,0 +1,38 @@
+"""Deployment: the compiled controller next to the CAN bridge (paper, "Experimental Studies").
+
+* :mod:`~.signals` -- what the bus carries each tick (the bus vector) and the
+  estimator that builds the controller's measurement from it;
+* :mod:`~.step` -- :class:`RuntimeStep`, the compiled step ``f(leaves, bus)``
+  and the rule of what may be sent (:func:`command_problem`);
+* :mod:`~.artefact` -- the step exported with ``jax.export`` and its manifest;
+* :mod:`~.runner` -- ``ampc run``'s 20 Hz loop next to ``can_bridge``;
+* :mod:`~.plant_node` -- ``ampc plant``, the simulated vehicle on the bus
+  (python-can, cantools, autosar-e2e);
+* :mod:`~.replay` -- ``ampc replay``, bit for bit and what-if;
+* :mod:`~.faults` -- injected faults for the safety chain's tests.
+
+The bus-side modules import ``can_bridge``, ``can``, ``cantools`` and ``e2e``
+only inside the functions that talk to the bus (the ``runtime`` extra).
+"""
+
+from .artefact import Artefact, ArtefactError, export_step, load_artefact
+from .faults import Fault, parse_fault
+from .signals import BUS_FIELDS, MESSAGES, bus_from_bridge, bus_measurement, bus_vector
+from .step import RuntimeStep, StepReport, command_problem
+
+__all__ = [
+    "BUS_FIELDS",
+    "MESSAGES",
+    "Artefact",
+    "ArtefactError",
+    "Fault",
+    "RuntimeStep",
+    "StepReport",
+    "bus_from_bridge",
+    "bus_measurement",
+    "bus_vector",
+    "command_problem",
+    "export_step",
+    "load_artefact",
+    "parse_fault",
+]

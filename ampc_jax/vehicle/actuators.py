@@ -1,0 +1,170 @@
+"""The actuators' limits: one contract for the controller, the bridge and the bus.
+
+Rule: every torque limit of the vehicle lives here, and the rest derives
+from it; reason: the controller, the CAN bridge and the DBC disagreeing is a
+torque the controller plans and the vehicle never gets (or one the bridge
+clamps without saying). What derives from :data:`ACTUATORS`:
+
+* the vehicle examples' agent bounds (``CruiseSettings``, ``StabilitySettings``:
+  front brakes in ``[FRONT_MIN_NM, 0]``, ``|DTR/2| + |RTV|`` within a rear
+  wheel's range);
+* the bridge's configuration (:func:`bridge_kwargs`, passed to
+  ``can_bridge.Bridge``; the bridge's shipped ``vehicle.toml`` must equal it);
+* the DBC's torque signals, whose range must hold every limit (2 Nm steps).
+
+``tests/vehicle/test_actuators.py`` fails when any of them disagrees.
+
+:func:`bridge_actuators` is the bridge's limiter as a pure JAX function (the
+rules of ``can_bridge/src/safety.rs``: a target rounded half-to-even onto the
+2 Nm grid, clamped to the wheel's range rounded toward zero, moved by at most
+the rise step away from zero and the release step toward zero per tick, never
+across zero in one tick), so a simulated closed loop applies the torques a run
+over the bus applies (``SimConfig(actuators="bridge")``).
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from os import PathLike
+from typing import Any, NamedTuple
+
+import jax.numpy as jnp
+from jax import Array
+
+from .params import CONTROL_DT, WHEELS
+
+__all__ = [
+    "ACTUATORS",
+    "FRONT_MIN_NM",
+    "REAR_MAX_NM",
+    "TORQUE_STEP_NM",
+    "ActuatorLimits",
+    "WheelLimits",
+    "bridge_actuators",
+    "bridge_kwargs",
+    "load_limits",
+]
+
+TORQUE_STEP_NM = 2.0
+"""Resolution of the DBC's torque signals (Nm): the bridge works on this grid."""
+
+
+class WheelLimits(NamedTuple):
+    """One wheel's actuator: range (Nm, negative brakes) and rates (Nm/s)."""
+
+    min_nm: float
+    max_nm: float
+    rise_nm_per_s: float  # |torque| increasing
+    release_nm_per_s: float  # |torque| decreasing
+
+
+class ActuatorLimits(NamedTuple):
+    """The four wheels' actuators, [FL, FR, RL, RR], and the command period."""
+
+    wheels: tuple[WheelLimits, WheelLimits, WheelLimits, WheelLimits]
+    period_ms: float = 1e3 * CONTROL_DT
+
+    def steps(self) -> dict[str, Array]:
+        """The limits on the 2 Nm grid as integer steps per tick (the bridge's rule)."""
+        q = TORQUE_STEP_NM
+        dt = self.period_ms * 1e-3
+        w = self.wheels
+        return {
+            "min": jnp.array([math.ceil(x.min_nm / q) for x in w], jnp.int32),
+            "max": jnp.array([math.floor(x.max_nm / q) for x in w], jnp.int32),
+            "rise": jnp.array([max(1, math.floor(x.rise_nm_per_s * dt / q)) for x in w]),
+            "release": jnp.array([max(1, math.floor(x.release_nm_per_s * dt / q)) for x in w]),
+        }
+
+
+FRONT_MIN_NM = -2000.0
+"""Front wheels brake only, down to -2000 Nm (a locked wheel at mu = 1, Table I loads)."""
+
+REAR_MAX_NM = 2000.0
+"""Rear wheels drive and brake up to +-2000 Nm (what a rear tyre transmits at mu = 1)."""
+
+_RISE, _RELEASE = 10000.0, 20000.0
+
+ACTUATORS = ActuatorLimits(
+    wheels=(
+        WheelLimits(FRONT_MIN_NM, 0.0, _RISE, _RELEASE),
+        WheelLimits(FRONT_MIN_NM, 0.0, _RISE, _RELEASE),
+        WheelLimits(-REAR_MAX_NM, REAR_MAX_NM, _RISE, _RELEASE),
+        WheelLimits(-REAR_MAX_NM, REAR_MAX_NM, _RISE, _RELEASE),
+    )
+)
+"""The vehicle examples' actuators (docs/vehicle.md, "Actuator bounds"); rates
+10,000 Nm/s rising and 20,000 Nm/s releasing (500 and 1,000 Nm per 50 ms tick)."""
+
+
+def load_limits(path: str | PathLike[str]) -> ActuatorLimits:
+    """Read the actuator limits from a bridge configuration file (``vehicle.toml``
+    schema: ``period_ms`` and ``[wheels.FL]`` ... ``[wheels.RR]`` with ``min_nm``,
+    ``max_nm``, ``rise_nm_per_s``, ``release_nm_per_s``; a missing key keeps
+    :data:`ACTUATORS`' value). ValueError naming the key otherwise."""
+    with open(path, "rb") as f:
+        cfg = tomllib.load(f)
+    wheels_cfg = cfg.get("wheels", {})
+    if not isinstance(wheels_cfg, dict):
+        raise ValueError(f"{path}: wheels: expected a table per wheel {WHEELS}")
+    unknown = sorted(set(wheels_cfg) - set(WHEELS))
+    if unknown:
+        raise ValueError(f"{path}: wheels: unknown wheel(s) {unknown}; expected {WHEELS}")
+    wheels = []
+    for name, default in zip(WHEELS, ACTUATORS.wheels, strict=True):
+        w = wheels_cfg.get(name, {})
+        vals = {}
+        for field in WheelLimits._fields:
+            v = w.get(field, getattr(default, field))
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ValueError(f"{path}: wheels.{name}.{field}: expected a number, got {v!r}")
+            vals[field] = float(v)
+        if not vals["min_nm"] <= 0.0 <= vals["max_nm"]:
+            raise ValueError(f"{path}: wheels.{name}: expected min_nm <= 0 <= max_nm")
+        wheels.append(WheelLimits(**vals))
+    period = cfg.get("period_ms", ACTUATORS.period_ms)
+    return ActuatorLimits(tuple(wheels), float(period))  # type: ignore[arg-type]
+
+
+def bridge_kwargs(limits: ActuatorLimits = ACTUATORS) -> dict[str, Any]:
+    """``can_bridge.Bridge`` keyword arguments that give the bridge these limits."""
+    w = limits.wheels
+    return {
+        "period_ms": float(limits.period_ms),
+        "torque_min_nm": [x.min_nm for x in w],
+        "torque_max_nm": [x.max_nm for x in w],
+        "rise_nm_per_s": [x.rise_nm_per_s for x in w],
+        "release_nm_per_s": [x.release_nm_per_s for x in w],
+    }
+
+
+def bridge_actuators(
+    prev_steps: Array, target: Array, limits: ActuatorLimits = ACTUATORS
+) -> tuple[Array, Array]:
+    """One tick of the bridge's limiter (``safety.rs``, ``Limiter::follow``).
+
+    Parameters
+    ----------
+    prev_steps : (4,) int32, the previous output in 2 Nm steps.
+    target : (4,) float, the commanded torques (Nm); non-finite entries hold
+        the previous output (the bridge refuses such a command).
+
+    Returns
+    -------
+    (steps, torques) : the new output in steps, and in Nm (dtype of ``target``).
+    """
+    g = limits.steps()
+    q = TORQUE_STEP_NM
+    finite = jnp.isfinite(target)
+    want = jnp.round(jnp.where(finite, target, 0.0) / q).astype(jnp.int32)  # half to even
+    want = jnp.clip(want, g["min"], g["max"])
+    want = jnp.where(finite, want, prev_steps)
+    y = prev_steps
+    sign = jnp.sign(y)
+    up = jnp.where(sign < 0, g["release"], g["rise"])
+    down = jnp.where(sign > 0, g["release"], g["rise"])
+    nxt = y + jnp.clip(want - y, -down, up)
+    crossed = ((y > 0) & (nxt < 0)) | ((y < 0) & (nxt > 0))
+    nxt = jnp.clip(jnp.where(crossed, 0, nxt), g["min"], g["max"]).astype(jnp.int32)
+    return nxt, (nxt * q).astype(target.dtype)
