@@ -9,7 +9,11 @@ adapter written for the tests, cantools + autosar-e2e):
   on a serial adapter, 205 on socketcand), and frames dropped for their age;
 * sensors: share of ``latest_state()`` samples judged valid for a frozen
   (repeating) sensor, a counter stepping by 3, two sources on one ID, 90 %
-  bad CRC (before: 93 %, 95 %, 97.5 %, 62 %);
+  bad CRC (before: 93 %, 95 %, 97.5 %, 62 %), and for healthy sensors (the
+  control: near 100 %). Rule: every message the bridge receives is sent
+  each 20 ms, sound, and only VehicleMotion carries the fault; reason: the
+  state is valid only while all of them arrive sound, so a missing message
+  would make every case 0 % whatever the fault;
 * reconnect: a socketcand server killed and restarted after 0.5 s: time
   until frames reach it again (before: none in 6 s);
 * flood: a non-reading peer flooding ``V`` for 5 s at 50 ms: ticks, largest
@@ -43,7 +47,7 @@ from cb_fault_peers import (  # noqa: E402
     burst_after,
     open_raw_host,
 )
-from cb_peers import MOTION, STEER, WHEELS, CmdChecker, state_message  # noqa: E402
+from cb_peers import MOTION, CmdChecker, send_sensors, state_message  # noqa: E402
 
 import can_bridge  # noqa: E402
 
@@ -110,6 +114,7 @@ def sensors() -> dict:
     out = {}
     other = {**MOTION, "LongSpeed": 33.0}
     cases = {
+        "healthy": lambda k: [("VehicleMotion", MOTION, k % 15)],
         "frozen": lambda k: [("VehicleMotion", MOTION, 5)],
         "step_3": lambda k: [("VehicleMotion", MOTION, 3 * k % 15)],
         "two_sources": lambda k: [("VehicleMotion", MOTION, k % 15), ("VehicleMotion", other, (k + 7) % 15)],
@@ -123,8 +128,8 @@ def sensors() -> dict:
         for k in range(100):
             for f in frames(k):
                 bus.send(state_message(f[0], f[1], f[2], corrupt=len(f) > 3 and f[3]))
-            bus.send(state_message("WheelSpeeds", WHEELS, k % 15))
-            bus.send(state_message("SteeringState", STEER, k % 15))
+            # the other four messages, sound (cb_peers.SENSORS' healthy values)
+            send_sensors(bus, k % 15, skip=("VehicleMotion",))
             time.sleep(0.02)
             if k >= 5:
                 samples.append(b.latest_state()["valid"])

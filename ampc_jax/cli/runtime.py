@@ -24,7 +24,12 @@ from .args import arg_type, fail, flag_error, output_dir, positive_finite
 
 __all__ = ["add_runtime_commands"]
 
-_FLAGS = {"formulation": "--formulation", "duration": "--duration", "scenario": "--scenario"}
+_FLAGS = {
+    "formulation": "--formulation",
+    "duration": "--duration",
+    "scenario": "--scenario",
+    "fault": "--fault",
+}
 
 
 def _x64() -> None:
@@ -89,6 +94,24 @@ def _golden_bus(spec: Any) -> np.ndarray:
     return bus_vector(ps, steer, T, v_ref, float(sc.mu))
 
 
+def _is_float(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _rt_priority(text: str) -> int:
+    try:
+        p = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer 2..99, got {text!r}") from None
+    if not 2 <= p <= 99:
+        raise argparse.ArgumentTypeError(f"expected an integer 2..99, got {p}")
+    return p
+
+
 def _cpu_list(text: str) -> tuple[int, ...]:
     import os
 
@@ -111,6 +134,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.cpus:
         os.sched_setaffinity(0, args.cpus)
     _x64()
+    if args.rt_priority is not None:
+        import jax
+
+        # the step then runs in the (real-time) calling thread, not a worker's
+        jax.config.update("jax_cpu_enable_async_dispatch", False)
     import jax.numpy as jnp
 
     from ..runtime.faults import CONTROLLER_FAULTS
@@ -163,6 +191,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         ]
         for f in args.plant_fault or ():
             plant_cmd += ["--fault", f]
+        from ..vehicle import SCENARIOS
+
+        if duration > SCENARIOS[args.scenario].duration:
+            plant_cmd.append("--repeat")
         if args.plant_cpus:
             plant_cmd = ["taskset", "-c", ",".join(map(str, args.plant_cpus)), *plant_cmd]
     meta = {
@@ -177,7 +209,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         "commit": _commit(),
         "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
     }
-    options = RunOptions(duration=duration, lead_ms=args.lead_ms, faults=faults)
+    options = RunOptions(
+        duration=duration, lead_ms=args.lead_ms, faults=faults, rt_priority=args.rt_priority
+    )
     progress = None if args.quiet else (lambda line: print(line, flush=True))
     try:
         log = run_controller(
@@ -235,6 +269,7 @@ def cmd_plant(args: argparse.Namespace) -> int:
         cmd_timeout_ms=args.cmd_timeout_ms,
         faults=faults,
         log_path=out / "plant_bus.log",
+        repeat=args.repeat,
     )
     progress = None if args.quiet else (lambda t: print(f"plant t {t:5.1f} s", flush=True))
     try:
@@ -283,10 +318,16 @@ def cmd_replay(args: argparse.Namespace) -> int:
     problem = output_dir(args.out)
     if problem:
         return fail(problem)
+    rho = None
+    if args.rho_scale:
+        items = args.rho_scale.split(",")
+        bad = [x for x in items if not _is_float(x)]
+        if bad:
+            return fail(f"--rho-scale: expected comma-separated numbers, got {bad[0]!r}")
+        rho = tuple(float(x) for x in items)
+        if not all(np.isfinite(r) and r > 0 for r in rho):
+            return fail(f"--rho-scale: expected positive finite numbers, got {args.rho_scale!r}")
     try:
-        rho = None
-        if args.rho_scale:
-            rho = tuple(float(x) for x in args.rho_scale.split(","))
         res = replay_run(
             Path(args.log),
             Path(args.out),
@@ -329,7 +370,9 @@ def add_runtime_commands(sub: Any) -> None:
         help="the bridge's channel: socketcan:IFACE, slcan:PATH[@BAUD], slcan-pty: or "
         "socketcand:HOST:PORT/BUS (required)",
     )
-    r.add_argument("--scenario", required=True, help="the scenario the controller is set up for")
+    r.add_argument(
+        "--scenario", required=True, help="the scenario the controller is set up for (required)"
+    )
     r.add_argument(
         "--formulation",
         choices=forms,
@@ -365,8 +408,8 @@ def add_runtime_commands(sub: Any) -> None:
         "--fault",
         action="append",
         metavar="KIND@START:END",
-        help=f"inject a controller fault, KIND one of {', '.join(CONTROLLER_FAULTS)} "
-        "(seconds of actuation; repeatable; default: none)",
+        help=f"inject a controller fault, KIND one of {', '.join(CONTROLLER_FAULTS)}, "
+        "START and END in seconds of actuation; repeatable (default: none)",
     )
     r.add_argument(
         "--plant-fault",
@@ -374,6 +417,13 @@ def add_runtime_commands(sub: Any) -> None:
         metavar="KIND@START:END",
         help=f"with --with-plant: a sensor fault of the plant, KIND one of "
         f"{', '.join(SENSOR_FAULTS)} (default: none)",
+    )
+    r.add_argument(
+        "--rt-priority",
+        type=_rt_priority,
+        default=None,
+        help="SCHED_FIFO priority 2..99 for the bridge's transmit thread (the loop gets one "
+        "less; needs root or CAP_SYS_NICE) (default: none, normal scheduling)",
     )
     r.add_argument(
         "--cpus",
@@ -419,8 +469,14 @@ def add_runtime_commands(sub: Any) -> None:
         "--fault",
         action="append",
         metavar="KIND@START:END",
-        help=f"inject a sensor fault, KIND one of {', '.join(SENSOR_FAULTS)} (seconds of "
-        "manoeuvre; repeatable; default: none)",
+        help=f"inject a sensor fault, KIND one of {', '.join(SENSOR_FAULTS)}, START and END "
+        "in seconds of manoeuvre; repeatable (default: none)",
+    )
+    p.add_argument(
+        "--repeat",
+        action="store_true",
+        help="start the manoeuvre again from its initial state whenever it ends before "
+        "--duration (long timing runs) (default: off)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress line (default: one a second)")
     p.add_argument("--out", default="plant", help="output directory (default: plant)")
@@ -432,7 +488,9 @@ def add_runtime_commands(sub: Any) -> None:
         description="Write the compiled controller step (serialized StableHLO) and a "
         "manifest (versions, configuration hash, shapes, a golden input/output pair).",
     )
-    e.add_argument("--scenario", required=True, help="the scenario the controller is set up for")
+    e.add_argument(
+        "--scenario", required=True, help="the scenario the controller is set up for (required)"
+    )
     e.add_argument("--formulation", choices=forms, default=None, help="(default: local_explicit)")
     e.add_argument("--float32", action="store_true", help="float32 step (default: float64)")
     e.add_argument("--out", required=True, help="the artefact file to write (required)")
@@ -455,7 +513,7 @@ def add_runtime_commands(sub: Any) -> None:
         "--formulation",
         action="append",
         choices=forms,
-        help="also replay with this formulation (repeatable; default: none)",
+        help="also replay with this formulation, repeatable (default: none)",
     )
     p.add_argument("--float32", action="store_true", help="also replay in float32 (default: off)")
     p.add_argument("--out", default="replay", help="output directory (default: replay)")

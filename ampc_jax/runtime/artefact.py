@@ -127,6 +127,8 @@ def load_artefact(path: str | PathLike[str], expect_config_hash: str | None = No
             blob = z.read("step.stablehlo")
     except (OSError, KeyError, zipfile.BadZipFile, json.JSONDecodeError) as exc:
         raise ArtefactError(f"artefact {path}: not a readable artefact ({exc})") from None
+    if not isinstance(manifest, dict):
+        raise ArtefactError(f"artefact {path}: manifest.json is not an object")
     if manifest.get("format") != ARTEFACT_FORMAT:
         raise ArtefactError(
             f"artefact {path}: format {manifest.get('format')!r}, expected {ARTEFACT_FORMAT}"
@@ -159,12 +161,19 @@ def load_artefact(path: str | PathLike[str], expect_config_hash: str | None = No
             f"artefact {path}: step.stablehlo does not deserialize ({exc})"
         ) from None
     art = Artefact(exp, manifest)
-    g = manifest["golden"]
     try:
-        got = jax.tree.leaves(art(art.init_leaves(), jnp.asarray(_fromlist(g["bus"]))))
-    except Exception as exc:
+        g = manifest["golden"]
+        leaves = art.init_leaves()
+        bus = jnp.asarray(_fromlist(g["bus"]))
+        want = [_fromlist(d) for d in g["outputs"]]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ArtefactError(
+            f"artefact {path}: the manifest's golden pair is malformed ({exc!r})"
+        ) from None
+    try:
+        got = jax.tree.leaves(art(leaves, bus))
+    except Exception as exc:  # noqa: BLE001 -- whatever the deserialized step raises
         raise ArtefactError(f"artefact {path}: the golden input does not run ({exc})") from None
-    want = [_fromlist(d) for d in g["outputs"]]
     if len(got) != len(want):
         raise ArtefactError(f"artefact {path}: {len(got)} outputs, the manifest has {len(want)}")
     for i, (a, b) in enumerate(zip(got, want, strict=True)):

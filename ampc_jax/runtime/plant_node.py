@@ -126,6 +126,9 @@ class PlantNode:
     cmd_timeout_ms : silence after which the plant applies zero torque (default 200).
     start_timeout_s : longest wait for the first active frame (default 60).
     faults : injected sensor faults (:class:`~ampc_jax.runtime.faults.Fault`).
+    log_path : the candump log of the bus as the plant sees it (None: no log).
+    repeat : when the manoeuvre ends before ``duration``, start it again from
+        its initial state (vehicle and driver reset; for long timing runs).
     """
 
     def __init__(
@@ -138,6 +141,7 @@ class PlantNode:
         start_timeout_s: float = 60.0,
         faults: tuple[Fault, ...] = (),
         log_path: Path | None = None,
+        repeat: bool = False,
     ) -> None:
         self.channel = channel.removeprefix("slcan:")
         self.spec = scenario_spec(scenario)
@@ -146,6 +150,8 @@ class PlantNode:
         self.start_timeout = start_timeout_s
         self.faults = faults
         self.log_path = log_path
+        self.repeat = repeat
+        self.lap = int(round(self.spec.duration / PLANT_TICK_S))  # plant ticks per manoeuvre
         self.db = _db()
         self.cmd = self.db.get_message_by_name("WheelTorqueCmd")
         self.data_ids = {m.name: int(m.dbc.attributes["E2EDataID"].value) for m in self.db.messages}
@@ -160,8 +166,8 @@ class PlantNode:
             lambda ps, steer, T, mu: plant_step(ps, steer, T, mu, vp, PLANT_TICK_S, n_sub)
         )
         self._driver = jax.jit(lambda ds, ps, t: driver_step(ds, ps, t, sc, dp))
-        self.ps = initial_plant_state(sc, vp, jnp.float64)
-        self.ds = initial_driver_state(jnp.float64)
+        self.ps = self.ps0 = initial_plant_state(sc, vp, jnp.float64)
+        self.ds = self.ds0 = initial_driver_state(jnp.float64)
         self.mu = sc.mu
         # trace and compile both before the clock starts
         jax.block_until_ready(self._plant(self.ps, 0.0, jnp.zeros(4), self.mu))
@@ -290,7 +296,9 @@ class PlantNode:
                     k_target = min(n_ticks, int((now - started) / PLANT_TICK_S) + 1)
                     catch_up += max(0, k_target - k - 1)
                     while k < k_target:
-                        t_k = k * PLANT_TICK_S
+                        if self.repeat and k > 0 and k % self.lap == 0:
+                            self.ps, self.ds = self.ps0, self.ds0  # the next lap
+                        t_k = (k % self.lap if self.repeat else k) * PLANT_TICK_S
                         if k % per_control == 0:
                             self.ds, st, td, vr = self._driver(self.ds, self.ps, t_k)
                             steer, T_drv, v_ref = float(st), float(td), float(vr)

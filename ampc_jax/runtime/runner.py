@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -51,6 +52,9 @@ class RunOptions:
     max_state_age_ms : older state counts as stale (100).
     start_timeout_s : longest wait for the first valid state (60).
     faults : injected controller faults (``nan``, ``fail``).
+    rt_priority : None (default), or a SCHED_FIFO priority 2..99 for the
+        bridge's transmit thread, with one less for the runtime's loop (needs
+        root or CAP_SYS_NICE; the step then runs in the loop's thread).
     """
 
     duration: float = 16.0
@@ -58,6 +62,7 @@ class RunOptions:
     max_state_age_ms: float = 100.0
     start_timeout_s: float = 60.0
     faults: tuple[Fault, ...] = ()
+    rt_priority: int | None = None
 
 
 @dataclass
@@ -117,9 +122,13 @@ def run_controller(
 
     out.mkdir(parents=True, exist_ok=True)
     log = TickLog()
-    # warm the compiled step's first call before anything is actuated
+    # Rule: the step gets NumPy arrays of its own dtype (a jnp conversion would
+    # compile a small program at the first tick: 50 ms measured in float32), and
+    # it is called once before actuation and again on the first valid state,
+    # so the first tick runs warm.
+    np_dtype = np.dtype(dtype)
     cold = tuple(init_leaves)
-    _, _, _ = step_fn(cold, jnp.zeros((len(BUS_FIELDS),), dtype))
+    _, _, _ = step_fn(cold, np.zeros((len(BUS_FIELDS),), np_dtype))
     stop = {"flag": False}
     reset = {"flag": False}
     old_term = signal.signal(signal.SIGTERM, lambda *_: stop.update(flag=True))
@@ -130,6 +139,7 @@ def run_controller(
         log_path=str(out / "bridge.log"),
         log_overwrite=True,
         trace_capacity=1,
+        rt_priority=options.rt_priority,
     )
     period_ns = int(round(1e9 * CONTROL_DT))
     plant = None
@@ -157,6 +167,9 @@ def run_controller(
             if plant is not None and plant.poll() is not None:
                 raise RuntimeError(f"the plant process exited with code {plant.returncode}")
             time.sleep(0.01)
+        first, _ = bus_from_bridge(bridge.latest_state())
+        if first is not None:  # warm again, on real data (the result is not used)
+            jax.block_until_ready(step_fn(cold, first.astype(np_dtype)))
         # The bridge latches a fault when no command came for fault_after_ms,
         # which the wait for the first state (the plant's start) may exceed:
         # starting actuation is the explicit reset of that start-up latch.
@@ -173,6 +186,8 @@ def run_controller(
         now = time.monotonic_ns()
         k0 = (now - d0) // period_ns + 1  # first bridge tick still ahead
         n_ticks = int(round(options.duration / CONTROL_DT))
+        if options.rt_priority is not None:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(options.rt_priority - 1))
         lead_ns = int(options.lead_ms * 1e6)
         t_start = time.monotonic()
         last_print = t_start
@@ -206,7 +221,7 @@ def run_controller(
                 log.rows.append(_row(i, woke, st, None, None, None, why, False, bridge))
                 continue
             t0 = time.perf_counter()
-            torques, new_leaves, rep = step_fn(leaves, jnp.asarray(bus, dtype))
+            torques, new_leaves, rep = step_fn(leaves, bus.astype(np_dtype))
             torques = np.asarray(torques, np.float64)
             dt_ms = (time.perf_counter() - t0) * 1e3
             compute.append(dt_ms)
@@ -250,6 +265,8 @@ def run_controller(
                     f"{bridge.stats()['tx_mode']}"
                 )
     finally:
+        if options.rt_priority is not None:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         stats = bridge.stats() if bridge.running else None
         bridge.stop()
         stats = stats or bridge.stats()

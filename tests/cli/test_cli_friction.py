@@ -37,10 +37,21 @@ def _options():
 # ----------------------------------------------------------------------- 1. help texts
 def test_every_option_states_its_default():
     options = list(_options())
-    assert {name for name, _ in options} == {"solve", "simulate", "demo"}
+    assert {name for name, _ in options} == {
+        "solve",
+        "simulate",
+        "demo",
+        "run",
+        "plant",
+        "export",
+        "replay",
+    }
     assert len(options) > 30
     for name, action in options:
         text = action.help or ""
+        if action.required:  # a required option has no default: it says so
+            assert text.endswith("(required)"), (name, action.option_strings, text)
+            continue
         assert "default" in text, (name, action.option_strings, text)
         # the notes' form: the help ends with "(default: ...)"
         assert "(default: " in text and text.endswith(")"), (name, action.option_strings, text)

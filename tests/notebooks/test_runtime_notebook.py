@@ -1,0 +1,30 @@
+"""notebooks/runtime_over_the_bus.ipynb executes as it stands (nbclient), on a 6 s run."""
+
+import os
+from pathlib import Path
+
+import pytest
+
+pytestmark = [pytest.mark.timeout(300), pytest.mark.both_cores]
+
+ROOT = Path(__file__).parents[2]
+NOTEBOOK = ROOT / "notebooks" / "runtime_over_the_bus.ipynb"
+
+
+def test_runtime_notebook_executes(tmp_path, monkeypatch):
+    nbformat = pytest.importorskip("nbformat")
+    nbclient = pytest.importorskip("nbclient")
+
+    nb = nbformat.read(NOTEBOOK, as_version=4)
+    first = next(c for c in nb.cells if c.cell_type == "code").source
+    assert first.startswith("import os\n") and "XLA_FLAGS" in first
+    monkeypatch.setenv("AMPC_NOTEBOOK_RUN_SECONDS", "6")
+    monkeypatch.setenv("PYTHONPATH", str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    nbclient.NotebookClient(nb, timeout=240, kernel_name="python3").execute(cwd=str(tmp_path))
+    text = "".join(
+        o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
+    )
+    assert "'misses': 0" in text and "identical bit for bit" in text
+    assert "speed RMS difference" in text
+    figures = sorted(p.name for p in (tmp_path / "runtime_notebook" / "figures").glob("*.png"))
+    assert figures == ["response.png", "tick_timing.png"]
