@@ -139,7 +139,6 @@ def cmd_run(args: argparse.Namespace) -> int:
 
         # the step then runs in the (real-time) calling thread, not a worker's
         jax.config.update("jax_cpu_enable_async_dispatch", False)
-    import jax.numpy as jnp
 
     from ..runtime.faults import CONTROLLER_FAULTS
     from ..runtime.runner import RunOptions, run_controller
@@ -160,12 +159,19 @@ def cmd_run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     if args.artefact:
         from ..runtime.artefact import ArtefactError, load_artefact
+        from ..vehicle import SCENARIOS
 
         try:
-            art = load_artefact(args.artefact, step.config_hash())
+            art = load_artefact(
+                args.artefact,
+                step.config_hash(),
+                step=step,
+                golden_bus=_golden_bus(SCENARIOS[args.scenario]),
+            )
         except ArtefactError as exc:
             return fail(f"--artefact: {exc}")
-        fn, leaves = art.compiled(), art.init_leaves()
+        # the state starts from this process's cold state, never from the file
+        fn, leaves = art.compiled(), step.init_leaves()
         source = f"artefact {args.artefact}"
     else:
         fn, leaves = step.compiled(), step.init_leaves()
@@ -209,9 +215,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         "commit": _commit(),
         "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
     }
-    options = RunOptions(
-        duration=duration, lead_ms=args.lead_ms, faults=faults, rt_priority=args.rt_priority
-    )
+    try:
+        options = RunOptions(
+            duration=duration, lead_ms=args.lead_ms, faults=faults, rt_priority=args.rt_priority
+        )
+    except ValueError as exc:
+        return fail(flag_error(exc, {"lead_ms": "--lead-ms", "duration": "--duration"}))
     progress = None if args.quiet else (lambda line: print(line, flush=True))
     try:
         log = run_controller(
@@ -223,11 +232,14 @@ def cmd_run(args: argparse.Namespace) -> int:
             meta=meta,
             plant_cmd=plant_cmd,
             progress=progress,
-            dtype=step.jnp_dtype if not args.artefact else jnp.dtype(art.manifest["dtype"]),
+            dtype=step.jnp_dtype,
         )
     except (TimeoutError, RuntimeError, OSError, ValueError) as exc:
         return fail(f"run: {exc}", 1)
     s = log.summary
+    if "error" in s:
+        print(f"ampc: error: run: {s['error']} (logs written to {out})", file=sys.stderr)
+        return 1
     print(
         f"ran {s['ticks']} ticks: sent {s['sent']}, misses {s['misses']}, skipped "
         f"{s['skipped'] or 0}; compute median {s['compute_ms_median']} ms, p99 "
@@ -247,7 +259,7 @@ def cmd_plant(args: argparse.Namespace) -> int:
     """``ampc plant``: the simulated vehicle on the bus."""
     _x64()
     from ..runtime.faults import SENSOR_FAULTS
-    from ..runtime.plant_node import PlantNode, write_report
+    from ..runtime.plant_node import write_report
     from ..vehicle import SCENARIOS
 
     if args.scenario not in SCENARIOS:
@@ -262,7 +274,28 @@ def cmd_plant(args: argparse.Namespace) -> int:
     if problem:
         return fail(problem)
     out = Path(args.out)
-    node = PlantNode(
+    try:
+        node = _plant_node(args, faults, out)
+    except ValueError as exc:
+        return fail(flag_error(exc, {"channel": "--channel"}))
+    progress = None if args.quiet else (lambda t: print(f"plant t {t:5.1f} s", flush=True))
+    try:
+        rep = node.run(progress)
+    except (TimeoutError, OSError) as exc:
+        return fail(f"plant: {exc}", 1)
+    write_report(rep, out)
+    s = rep.summary
+    print(
+        f"plant: {s['frames']} torque frames ({s['frames_bad']} bad), modes {s['modes']}, "
+        f"period p99 deviation {s['period_dev_ms_p99']} ms; wrote {out}"
+    )
+    return 0
+
+
+def _plant_node(args: argparse.Namespace, faults: tuple[Any, ...], out: Path) -> Any:
+    from ..runtime.plant_node import PlantNode
+
+    return PlantNode(
         args.channel,
         args.scenario,
         args.duration,
@@ -271,20 +304,6 @@ def cmd_plant(args: argparse.Namespace) -> int:
         log_path=out / "plant_bus.log",
         repeat=args.repeat,
     )
-    progress = None if args.quiet else (lambda t: print(f"plant t {t:5.1f} s", flush=True))
-    try:
-        rep = node.run(progress)
-    except (TimeoutError, OSError) as exc:
-        return fail(f"plant: {exc}", 1)
-    finally:
-        pass
-    write_report(rep, out)
-    s = rep.summary
-    print(
-        f"plant: {s['frames']} torque frames ({s['frames_bad']} bad), modes {s['modes']}, "
-        f"period p99 deviation {s['period_dev_ms_p99']} ms; wrote {out}"
-    )
-    return 0
 
 
 def cmd_export(args: argparse.Namespace) -> int:
@@ -338,6 +357,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as exc:
         return fail(f"replay: {exc}")
     d = res["determinism"]
+    if res.get("environment_mismatch"):
+        print(
+            f"ampc: warning: the run's environment differs from this one (run, now): "
+            f"{res['environment_mismatch']}",
+            file=sys.stderr,
+        )
     print(
         f"replayed {d['ticks']} ticks: {d['identical']} commands identical bit for bit, "
         f"{d['differ']} differ (max |dT| {d['max_abs_diff_nm']:g} Nm)"

@@ -115,11 +115,22 @@ class Artefact:
         return self._call.lower(self.init_leaves(), bus).compile()
 
 
-def load_artefact(path: str | PathLike[str], expect_config_hash: str | None = None) -> Artefact:
+def load_artefact(
+    path: str | PathLike[str],
+    expect_config_hash: str | None = None,
+    *,
+    step: RuntimeStep | None = None,
+    golden_bus: np.ndarray | None = None,
+) -> Artefact:
     """Load ``path`` and check it (ArtefactError naming the first check that fails).
 
     ``expect_config_hash``: the configuration the caller means to run
-    (:meth:`RuntimeStep.config_hash`); None skips that check.
+    (:meth:`RuntimeStep.config_hash`); None skips that check. ``step``: the
+    in-process step of that configuration (not compiled): the artefact's dtype,
+    input shapes and golden cold state must be its own, so a caller can run
+    the artefact from ``step.init_leaves()`` and never from numbers the file
+    supplies. ``golden_bus``: the golden input the caller expects (the
+    scenario's first bus vector).
     """
     try:
         with zipfile.ZipFile(path) as z:
@@ -154,6 +165,35 @@ def load_artefact(path: str | PathLike[str], expect_config_hash: str | None = No
             f"{expect_config_hash[:12]}...; scenario {manifest.get('scenario')!r}, "
             f"formulation {manifest.get('formulation')!r}, dtype {manifest.get('dtype')!r})"
         )
+    if step is not None:
+        leaves, bus0 = step.example_args()
+        want_inputs = {"leaves": [_spec(x) for x in leaves], "bus": _spec(bus0)}
+        if manifest.get("dtype") != step.dtype or manifest.get("inputs") != want_inputs:
+            raise ArtefactError(
+                f"artefact {path}: its inputs ({manifest.get('dtype')!r}) are not those of "
+                f"this run's step ({step.dtype!r})"
+            )
+        try:
+            cold = [_fromlist(d) for d in manifest["golden"]["leaves"]]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ArtefactError(
+                f"artefact {path}: the manifest's golden pair is malformed ({exc!r})"
+            ) from None
+        if len(cold) != len(leaves) or not all(
+            np.array_equal(a, np.asarray(b)) for a, b in zip(cold, leaves, strict=True)
+        ):
+            raise ArtefactError(f"artefact {path}: the golden input's state is not the cold state")
+    if golden_bus is not None:
+        try:
+            gb = _fromlist(manifest["golden"]["bus"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ArtefactError(
+                f"artefact {path}: the manifest's golden pair is malformed ({exc!r})"
+            ) from None
+        if not np.array_equal(gb, np.asarray(golden_bus, gb.dtype)):
+            raise ArtefactError(
+                f"artefact {path}: the golden input is not the scenario's first bus vector"
+            )
     try:
         exp = export.deserialize(bytearray(blob))
     except Exception as exc:  # a blob that hashes right but jax cannot read

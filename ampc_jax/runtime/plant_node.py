@@ -25,6 +25,7 @@ Fault injection (tests of the safety chain): ``silent`` (send nothing),
 from __future__ import annotations
 
 import json
+import os
 import queue
 import signal
 import threading
@@ -37,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..vehicle.actuators import ACTUATORS
 from ..vehicle.manoeuvres import (
     DriverParams,
     driver_step,
@@ -47,15 +49,12 @@ from ..vehicle.manoeuvres import scenario as scenario_spec
 from ..vehicle.params import CONTROL_DT, VehicleParams
 from ..vehicle.plant import plant_step
 from .faults import Fault, active_fault
-from .signals import bus_vector, message_values
+from .signals import MESSAGES, bus_vector, message_values
 
-__all__ = ["PLANT_TICK_S", "PUBLISH_EVERY", "PlantNode", "PlantReport"]
+__all__ = ["PLANT_TICK_S", "PlantNode", "PlantReport", "write_report"]
 
 PLANT_TICK_S = 0.005
 """The plant's real-time step (s): received frames are applied at this grain."""
-
-PUBLISH_EVERY = 4
-"""State messages go out every PUBLISH_EVERY plant ticks (20 ms, the DBC's cycle)."""
 
 MODES = {0: "active", 1: "hold", 2: "safe", 3: "fault"}
 
@@ -143,7 +142,11 @@ class PlantNode:
         log_path: Path | None = None,
         repeat: bool = False,
     ) -> None:
-        self.channel = channel.removeprefix("slcan:")
+        path = channel.removeprefix("slcan:")
+        path, _, baud = path.rpartition("@") if "@" in path else (path, "", "")
+        if baud and not baud.isdigit():
+            raise ValueError(f"channel: expected slcan:PATH[@BAUD], got {channel!r}")
+        self.channel, self.baud = path, int(baud) if baud else 115200
         self.spec = scenario_spec(scenario)
         self.duration = float(self.spec.duration if duration is None else duration)
         self.cmd_timeout = cmd_timeout_ms * 1e-3
@@ -155,6 +158,12 @@ class PlantNode:
         self.db = _db()
         self.cmd = self.db.get_message_by_name("WheelTorqueCmd")
         self.data_ids = {m.name: int(m.dbc.attributes["E2EDataID"].value) for m in self.db.messages}
+        # the state messages go out at their DBC cycle time (all 20 ms)
+        cycles = {int(self.db.get_message_by_name(n).cycle_time or 0) for n in MESSAGES}
+        tick_ms = round(1e3 * PLANT_TICK_S)
+        if len(cycles) != 1 or next(iter(cycles)) % tick_ms or not next(iter(cycles)):
+            raise ValueError(f"the DBC's state messages need one cycle time, got {sorted(cycles)}")
+        self.publish_every = cycles.pop() // tick_ms
         self._stop = False
 
     # -- compiled pieces -------------------------------------------------------------
@@ -205,10 +214,10 @@ class PlantNode:
                 return vals, "repeated counter"
             if step > 3:
                 return vals, f"counter jumped by {step}"
-        for k in ("TorqueFL", "TorqueFR", "TorqueRL", "TorqueRR"):
-            s = self.cmd.get_signal_by_name(k)
-            if not s.minimum <= vals[k] <= s.maximum:
-                return vals, f"{k} out of range"
+        names = ("TorqueFL", "TorqueFR", "TorqueRL", "TorqueRR")
+        for k, lim in zip(names, ACTUATORS.wheels, strict=True):
+            if not lim.min_nm <= vals[k] <= lim.max_nm:  # the actuator's range, not only the DBC's
+                return vals, f"{k} = {vals[k]:g} Nm outside [{lim.min_nm:g}, {lim.max_nm:g}]"
         return vals, ""
 
     # -- the loop ----------------------------------------------------------------------
@@ -222,7 +231,14 @@ class PlantNode:
         self._compile()
         rep = PlantReport()
         signal.signal(signal.SIGTERM, self.stop)
-        bus = can.Bus(interface="slcan", channel=self.channel, sleep_after_open=0, bitrate=500000)
+        bus = can.Bus(
+            interface="slcan",
+            channel=self.channel,
+            ttyBaudrate=self.baud,
+            sleep_after_open=0,
+            bitrate=500000,
+        )
+        parent = os.getppid()
         logger = can.CanutilsLogWriter(self.log_path, channel="plant") if self.log_path else None
         counters = dict.fromkeys(self.data_ids, 0)
         last_frames: dict[str, bytes] = {}
@@ -282,6 +298,8 @@ class PlantNode:
                         if started is None and mode == "active":
                             started = arrival
                 if started is None:
+                    if os.getppid() != parent:  # the runtime that started us is gone
+                        raise TimeoutError("the parent process exited before actuation started")
                     if now - wall0 > self.start_timeout:
                         raise TimeoutError(
                             f"no active torque frame within {self.start_timeout:g} s"
@@ -308,7 +326,7 @@ class PlantNode:
                         self.ps = self._plant(self.ps, steer, jnp.asarray(applied), self.mu)
                         k += 1
                 # 3. state messages on a 20 ms grid of the wall clock
-                due = int((now - wall0) / (PUBLISH_EVERY * PLANT_TICK_S))
+                due = int((now - wall0) / (self.publish_every * PLANT_TICK_S))
                 if due >= n_pub:
                     n_pub = due + 1
                     if not bus_lost:

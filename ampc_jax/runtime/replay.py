@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..closed_loop import config_for
+from .runner import environment
 from .signals import BUS_FIELDS, bus_measurement
 from .step import RuntimeStep
 
@@ -87,6 +88,13 @@ def replay_run(
             f"{log_dir}: the run's controller configuration ({meta['config_hash'][:12]}...) is "
             f"not what this version builds for {meta['scenario']!r} ({step.config_hash()[:12]}...)"
         )
+    env_run = meta.get("environment")
+    env_now = environment()
+    mismatch = (
+        None
+        if env_run is None or env_run == env_now
+        else {k: (env_run.get(k), v) for k, v in env_now.items() if env_run.get(k) != v}
+    )
     stepped = cols["stepped"].astype(bool)
     buses = np.stack([cols[f"bus_{n}"] for n in BUS_FIELDS], axis=1)[stepped]
     logged = np.stack([cols[f"cmd_{w}"] for w in WHEELS], axis=1)[stepped]
@@ -112,6 +120,9 @@ def replay_run(
             "max_abs_diff_nm": float(np.nanmax(diff)) if diff.size else 0.0,
         },
         "variants": [],
+        # bit for bit needs the run's jax, jaxlib and XLA flags: a difference is
+        # reported (run's, replay's) and explains a determinism failure
+        "environment_mismatch": mismatch,
     }
     rows: dict[str, list[Any]] = {"variant": [], "tick": [], "iterations": []}
     rows.update({f"T_{w}": [] for w in WHEELS})

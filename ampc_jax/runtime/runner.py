@@ -34,9 +34,9 @@ from ..vehicle.actuators import ACTUATORS, bridge_kwargs
 from ..vehicle.params import CONTROL_DT
 from .faults import Fault, active_fault
 from .signals import BUS_FIELDS, bus_from_bridge
-from .step import StepReport, command_problem
+from .step import StepReport, clamp_to_limits, command_problem
 
-__all__ = ["RunOptions", "TickLog", "run_controller"]
+__all__ = ["RunOptions", "TickLog", "environment", "run_controller"]
 
 WHEEL_NAMES = ("FL", "FR", "RL", "RR")
 
@@ -64,6 +64,15 @@ class RunOptions:
     faults: tuple[Fault, ...] = ()
     rt_priority: int | None = None
 
+    def __post_init__(self) -> None:
+        period_ms = 1e3 * CONTROL_DT
+        if not 0.0 < self.lead_ms < period_ms - 5.0:
+            raise ValueError(
+                f"lead_ms: expected a lead time in (0, {period_ms - 5.0:g}) ms, got {self.lead_ms!r}"
+            )
+        if not 0.0 < self.duration:
+            raise ValueError(f"duration: expected a positive time, got {self.duration!r}")
+
 
 @dataclass
 class TickLog:
@@ -78,6 +87,17 @@ class TickLog:
         if not self.rows:
             return pa.table({"tick": pa.array([], pa.int64())})
         return pa.table({k: [r[k] for r in self.rows] for k in self.rows[0]})
+
+
+def environment() -> dict[str, Any]:
+    """What a bit-for-bit replay needs to match: versions and XLA's flags."""
+    import jaxlib
+
+    return {
+        "jax": jax.__version__,
+        "jaxlib": jaxlib.__version__,
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+    }
 
 
 def _first_deadline(bridge: Any, timeout: float = 2.0) -> int:
@@ -131,8 +151,6 @@ def run_controller(
     _, _, _ = step_fn(cold, np.zeros((len(BUS_FIELDS),), np_dtype))
     stop = {"flag": False}
     reset = {"flag": False}
-    old_term = signal.signal(signal.SIGTERM, lambda *_: stop.update(flag=True))
-    old_usr1 = signal.signal(signal.SIGUSR1, lambda *_: reset.update(flag=True))
     bridge = can_bridge.Bridge(
         channel,
         **bridge_kwargs(ACTUATORS),
@@ -142,6 +160,8 @@ def run_controller(
         rt_priority=options.rt_priority,
     )
     period_ns = int(round(1e9 * CONTROL_DT))
+    lead_ns = int(options.lead_ms * 1e6)
+    n_ticks = int(round(options.duration / CONTROL_DT))
     plant = None
     leaves = cold
     seq = 0
@@ -150,11 +170,19 @@ def run_controller(
     sent = 0
     skipped: dict[str, int] = {}
     resets: list[float] = []
+    ended_early = True
+    error: str | None = None
+    old_term = signal.signal(signal.SIGTERM, lambda *_: stop.update(flag=True))
+    old_usr1 = signal.signal(signal.SIGUSR1, lambda *_: reset.update(flag=True))
     try:
         bridge.start()
         if plant_cmd is not None:
             cmd = [c.replace("{pty}", bridge.pty_path or "") for c in plant_cmd]
             plant = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=sys.stderr)
+        elif progress is not None and bridge.pty_path:
+            progress(
+                f"bridge pty: {bridge.pty_path} (ampc plant --channel slcan:{bridge.pty_path})"
+            )
         d0 = _first_deadline(bridge)
         # the first valid state starts actuation
         t_wait = time.monotonic()
@@ -183,19 +211,18 @@ def run_controller(
                 if time.monotonic() - t_reset > 1.0:
                     raise RuntimeError("the bridge did not leave its start-up fault after a reset")
                 time.sleep(0.005)
-        now = time.monotonic_ns()
-        k0 = (now - d0) // period_ns + 1  # first bridge tick still ahead
-        n_ticks = int(round(options.duration / CONTROL_DT))
+        # tick 0: the first bridge deadline whose wake-up (deadline - lead) is ahead
+        k0 = -((d0 - time.monotonic_ns() - lead_ns) // period_ns)
         if options.rt_priority is not None:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(options.rt_priority - 1))
-        lead_ns = int(options.lead_ms * 1e6)
-        t_start = time.monotonic()
-        last_print = t_start
+        last_print = time.monotonic()
         for i in range(n_ticks):
             if stop["flag"]:
                 break
-            reset_now = reset["flag"]
-            if reset_now:  # SIGUSR1: the operator's explicit reset of a latched fault
+            if plant is not None and plant.poll() is not None:
+                error = f"the plant process exited with code {plant.returncode}"
+                break
+            if reset["flag"]:  # SIGUSR1: the operator's explicit reset of a latched fault
                 reset["flag"] = False
                 bridge.reset_fault()
                 # on the clock of the frames: 0 at the first actuated bridge tick
@@ -205,65 +232,35 @@ def run_controller(
             if time.monotonic_ns() > deadline:  # this tick's bridge deadline already passed
                 misses += 1
                 skipped["late"] = skipped.get("late", 0) + 1
-                log.rows.append(_row(i, wake, None, None, None, None, "late", False, bridge))
-                continue
-            _sleep_until(wake)
-            woke = time.monotonic_ns()
-            st = bridge.latest_state()
-            got_state = time.monotonic_ns()
-            bus, why = bus_from_bridge(st)
-            age = st.get("age_ms")
-            if bus is not None and (age is None or age > options.max_state_age_ms):
-                bus, why = None, f"state stale ({age} ms)"
-            t_act = i * CONTROL_DT
-            if bus is None:
-                skipped["state"] = skipped.get("state", 0) + 1
-                log.rows.append(_row(i, woke, st, None, None, None, why, False, bridge))
-                continue
-            t0 = time.perf_counter()
-            torques, new_leaves, rep = step_fn(leaves, bus.astype(np_dtype))
-            torques = np.asarray(torques, np.float64)
-            dt_ms = (time.perf_counter() - t0) * 1e3
-            compute.append(dt_ms)
-            report = StepReport(*(np.asarray(x) for x in rep))
-            raw = torques.copy()
-            fault = active_fault(options.faults, t_act)
-            if fault == "nan":
-                torques = np.full(4, np.nan)
-            elif fault == "fail":
-                report = report._replace(status=np.int32(4), fallback=np.bool_(True))
-            leaves = new_leaves
-            problem = command_problem(torques, report, ACTUATORS)
-            ok = problem is None
-            margin = float("nan")
-            if ok:
-                seq += 1
-                t_set = time.monotonic_ns()
-                bridge.set_command(torques.tolist(), seq)
-                sent += 1
-                t_done = time.monotonic_ns()
-                margin = (deadline - t_done) * 1e-6
-                if margin < 0:
-                    misses += 1
+                log.rows.append(_row(i, wake, None, None, None, None, "late", False))
             else:
-                skipped["step"] = skipped.get("step", 0) + 1
-            row = _row(i, woke, st, bus, raw, report, problem, ok, bridge)
-            row["compute_ms"] = dt_ms
-            row["margin_ms"] = margin
-            row["state_call_ms"] = (got_state - woke) * 1e-6
-            row["set_call_ms"] = (t_done - t_set) * 1e-6 if ok else float("nan")
-            row["wake_late_ms"] = (woke - wake) * 1e-6
-            row["seq"] = seq if ok else -1
-            row["fault"] = fault or ""
-            log.rows.append(row)
+                _sleep_until(wake)
+                row = _tick(i, wake, bridge, step_fn, leaves, np_dtype, options, deadline, seq)
+                leaves = row.pop("_leaves")
+                if row.pop("_stepped"):
+                    compute.append(row["compute_ms"])
+                if row["sent"]:
+                    seq, sent = row["seq"], sent + 1
+                    misses += row["margin_ms"] < 0
+                else:
+                    kind = row.pop("_skip")
+                    skipped[kind] = skipped.get(kind, 0) + 1
+                row.pop("_skip", None)
+                _frame_of_previous(log.rows, bridge)
+                log.rows.append(row)
             if progress is not None and time.monotonic() - last_print >= 1.0:
                 last_print = time.monotonic()
                 p99 = float(np.percentile(compute, 99)) if compute else float("nan")
                 progress(
-                    f"t {t_act:5.1f}/{options.duration:g} s  ticks {i + 1}  sent {sent}  "
+                    f"t {i * CONTROL_DT:5.1f}/{options.duration:g} s  ticks {i + 1}  sent {sent}  "
                     f"misses {misses}  compute p99 {p99:.2f} ms  bridge "
-                    f"{bridge.stats()['tx_mode']}"
+                    f"{bridge.stats()['tx_mode']}  last {log.rows[-1]['reason'] or 'sent'}"
                 )
+        else:
+            ended_early = False
+        if log.rows and not ended_early:  # the last command's frame, one tick later
+            _sleep_until(d0 + (k0 + n_ticks) * period_ns + 5_000_000)
+            _frame_of_previous(log.rows, bridge)
     finally:
         if options.rt_priority is not None:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
@@ -273,11 +270,9 @@ def run_controller(
         signal.signal(signal.SIGTERM, old_term)
         signal.signal(signal.SIGUSR1, old_usr1)
         if plant is not None:
-            try:
-                plant.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                plant.terminate()
-                plant.wait(timeout=10)
+            _end_plant(plant, wait_s=5.0 if ended_early else 30.0)
+    if error is not None:
+        log.summary["error"] = error
     c = np.asarray(compute)
     q = lambda p: float(np.percentile(c, p)) if c.size else None  # noqa: E731
     log.summary = {
@@ -295,12 +290,105 @@ def run_controller(
         "bridge": {k: stats[k] for k in _BRIDGE_STATS},
         "plant_returncode": None if plant is None else plant.returncode,
         "pid": os.getpid(),
+        "environment": environment(),
     }
     import pyarrow.parquet as pq
 
     pq.write_table(log.table(), out / "ticks.parquet")
     (out / "run.json").write_text(json.dumps(log.summary, indent=1, default=str))
     return log
+
+
+def _tick(
+    i: int,
+    wake: int,
+    bridge: Any,
+    step_fn: Any,
+    leaves: tuple[Any, ...],
+    np_dtype: Any,
+    options: RunOptions,
+    deadline: int,
+    seq: int,
+) -> dict[str, Any]:
+    """One tick from its wake-up: state, step, checks, hand-over. The row, with
+    ``_leaves`` (the next warm state), ``_stepped`` and ``_skip`` for the loop."""
+    import can_bridge
+
+    woke = time.monotonic_ns()
+    st = bridge.latest_state()
+    got_state = time.monotonic_ns()
+    bus, why = bus_from_bridge(st)
+    age = st.get("age_ms")
+    if bus is not None and (age is None or age > options.max_state_age_ms):
+        bus, why = None, f"state stale ({age} ms)"
+    if bus is None:
+        row = _row(i, woke, st, None, None, None, why, False)
+        row.update(_leaves=leaves, _stepped=False, _skip="state")
+        row["wake_late_ms"] = (woke - wake) * 1e-6
+        return row
+    t0 = time.perf_counter()
+    torques, new_leaves, rep = step_fn(leaves, bus.astype(np_dtype))
+    torques = np.asarray(torques, np.float64)
+    dt_ms = (time.perf_counter() - t0) * 1e3
+    report = StepReport(*(np.asarray(x) for x in rep))
+    raw = torques.copy()
+    fault = active_fault(options.faults, i * CONTROL_DT)
+    if fault == "nan":
+        torques = np.full(4, np.nan)
+    elif fault == "fail":
+        report = report._replace(status=np.int32(4), fallback=np.bool_(True))
+    problem = command_problem(torques, report)
+    clamped = None
+    margin = set_ms = float("nan")
+    if problem is None:
+        torques, clamped = clamp_to_limits(torques, ACTUATORS)
+        t_set = time.monotonic_ns()
+        try:
+            bridge.set_command(torques.tolist(), seq + 1)
+        except can_bridge.CanBridgeError as exc:  # refused (a "refuse" limit rule, a stop)
+            problem = f"bridge refused the command: {exc}"
+        t_done = time.monotonic_ns()
+        set_ms = (t_done - t_set) * 1e-6
+        margin = (deadline - t_done) * 1e-6
+    ok = problem is None
+    row = _row(i, woke, st, bus, raw, report, problem, ok)
+    row.update(
+        compute_ms=dt_ms,
+        margin_ms=margin if ok else float("nan"),
+        state_call_ms=(got_state - woke) * 1e-6,
+        set_call_ms=set_ms,
+        wake_late_ms=(woke - wake) * 1e-6,
+        seq=seq + 1 if ok else -1,
+        fault=fault or "",
+        clamped=clamped or "",
+    )
+    row.update(_leaves=new_leaves, _stepped=True, _skip="step")
+    return row
+
+
+def _frame_of_previous(rows: list[dict[str, Any]], bridge: Any) -> None:
+    """What the bridge framed at the tick the previous row's command was for:
+    read after that tick (the rows' ``framed_*`` and ``bridge_mode``)."""
+    if not rows:
+        return
+    s = bridge.stats()
+    rows[-1]["bridge_mode"] = s["tx_mode"]
+    for j, w in enumerate(WHEEL_NAMES):
+        rows[-1][f"framed_{w}"] = float(s["applied_torques_nm"][j])
+
+
+def _end_plant(plant: subprocess.Popen, wait_s: float) -> None:
+    """Wait for the plant to finish its run; terminate it, then kill it, if it does not."""
+    try:
+        plant.wait(timeout=wait_s)
+        return
+    except subprocess.TimeoutExpired:
+        plant.terminate()
+    try:
+        plant.wait(timeout=5.0)
+    except subprocess.TimeoutExpired:
+        plant.kill()
+        plant.wait(timeout=5.0)
 
 
 _BRIDGE_STATS = (
@@ -332,7 +420,6 @@ def _row(
     report: StepReport | None,
     why: str | None,
     sent: bool,
-    bridge: Any,
 ) -> dict[str, Any]:
     nan = float("nan")
     row: dict[str, Any] = {
@@ -361,8 +448,8 @@ def _row(
         row[f"bus_{name}"] = float(bus[j]) if bus is not None else nan
     for j, w in enumerate(WHEEL_NAMES):
         row[f"cmd_{w}"] = float(torques[j]) if torques is not None else nan
-    s = bridge.stats()
-    row["bridge_mode"] = s["tx_mode"]
-    for j, w in enumerate(WHEEL_NAMES):
-        row[f"framed_{w}"] = float(s["applied_torques_nm"][j])
+    row["clamped"] = ""
+    row["bridge_mode"] = ""
+    for w in WHEEL_NAMES:
+        row[f"framed_{w}"] = nan
     return row

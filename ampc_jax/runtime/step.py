@@ -32,7 +32,14 @@ from ..closed_loop.controller import OK_STATUS, Controller
 from ..vehicle.actuators import ACTUATORS, ActuatorLimits
 from .signals import BUS_FIELDS, bus_measurement
 
-__all__ = ["StepReport", "RuntimeStep", "command_problem", "config_hash"]
+__all__ = [
+    "BOUND_TOL_NM",
+    "RuntimeStep",
+    "StepReport",
+    "clamp_to_limits",
+    "command_problem",
+    "config_hash",
+]
 
 
 class StepReport(NamedTuple):
@@ -43,6 +50,11 @@ class StepReport(NamedTuple):
     fallback: Any  # bool: the controller's guard replaced the solver's output
     primal_residual: Any
     dual_residual: Any
+    bound_violation: Any  # Nm: how far U^(0) leaves its agents' bounds (0 within them)
+
+
+BOUND_TOL_NM = 1.0
+"""A step whose U^(0) leaves its bounds by more than this (Nm) is not sent."""
 
 
 def config_hash(config: SimConfig, dtype: Any) -> str:
@@ -51,20 +63,36 @@ def config_hash(config: SimConfig, dtype: Any) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def command_problem(
-    torques: np.ndarray, report: StepReport, limits: ActuatorLimits = ACTUATORS
-) -> str | None:
+def command_problem(torques: np.ndarray, report: StepReport) -> str | None:
     """Why a step's torques must not be sent, or None: a fallback, a status that
-    is not usable, a non-finite torque or one outside a wheel's range."""
+    is not usable, a non-finite torque, or agent inputs U^(0) outside their
+    bounds by more than :data:`BOUND_TOL_NM` (a solver that broke its own
+    constraints). A wheel torque beyond its actuator's range is not a failed
+    step (the stability example adds the driver's torque to the controller's):
+    :func:`clamp_to_limits` clamps it, as the bridge and the simulation do."""
     t = np.asarray(torques, np.float64)
     if bool(report.fallback) or int(report.status) not in OK_STATUS:
         return f"solve failed (status {int(report.status)}, fallback {bool(report.fallback)})"
     if t.shape != (4,) or not np.all(np.isfinite(t)):
         return f"non-finite torque {t.tolist()}"
-    for name, x, w in zip(("FL", "FR", "RL", "RR"), t, limits.wheels, strict=True):
-        if not w.min_nm - 1e-9 <= x <= w.max_nm + 1e-9:
-            return f"torque {name} = {x:.1f} Nm outside [{w.min_nm:g}, {w.max_nm:g}]"
+    viol = float(report.bound_violation)
+    if not viol <= BOUND_TOL_NM:  # NaN refuses too
+        return f"U^(0) leaves its bounds by {viol:.3g} Nm"
     return None
+
+
+def clamp_to_limits(
+    torques: np.ndarray, limits: ActuatorLimits = ACTUATORS
+) -> tuple[np.ndarray, str | None]:
+    """The torques clamped to each wheel's range, and which wheels were clamped."""
+    t = np.asarray(torques, np.float64)
+    lo = np.array([w.min_nm for w in limits.wheels])
+    hi = np.array([w.max_nm for w in limits.wheels])
+    out = np.clip(t, lo, hi)
+    moved = [
+        f"{n} {x:.0f}" for n, x, y in zip(("FL", "FR", "RL", "RR"), t, out, strict=True) if x != y
+    ]
+    return out, (f"clamped {', '.join(moved)} Nm" if moved else None)
 
 
 @dataclass(frozen=True)
@@ -110,17 +138,23 @@ class RuntimeStep:
         ctrl, treedef = self.controller, self._treedef
         params = self.config.loop_params(self.jnp_dtype).controller
         vehicle = self.config.vehicle
+        cols = ctrl.input_columns
 
         def step(leaves: tuple[Any, ...], bus: Any) -> tuple[Any, tuple[Any, ...], StepReport]:
             state = jax.tree.unflatten(treedef, leaves)
             meas, driver = bus_measurement(bus, vehicle)
             torques, state, info = ctrl.step(state, params, meas, driver)
+            u0 = info.u_ctrl[cols]
+            lb, ub = info.data.lb[0], info.data.ub[0]
+            below = jnp.where(jnp.isfinite(lb), lb - u0, 0.0)
+            above = jnp.where(jnp.isfinite(ub), u0 - ub, 0.0)
             report = StepReport(
                 info.iterations.astype(jnp.int32),
                 info.status.astype(jnp.int32),
                 info.fallback,
                 info.primal_residual,
                 info.dual_residual,
+                jnp.maximum(jnp.max(jnp.maximum(below, above)), 0.0),
             )
             return torques, tuple(jax.tree.leaves(state)), tuple(report)
 

@@ -36,9 +36,9 @@ DETECT = {"silent": STATE_TIMEOUT, "frozen": 0.1, "corrupt": 0.1, "nan": 0.0, "f
 SLACK = 0.08
 
 
-def _run(out: Path, *args: str, reset_at: float | None = None) -> dict:
+def _run(out: Path, rt_args: list[str], *args: str, reset_at: float | None = None) -> dict:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    cmd = [sys.executable, "-m", "ampc_jax.cli", "run", "--channel", "slcan-pty:"]
+    cmd = [sys.executable, "-m", "ampc_jax.cli", "run", *rt_args, "--channel", "slcan-pty:"]
     cmd += ["--scenario", SCENARIO, "--with-plant", "--out", str(out), *args]
     proc = subprocess.Popen(
         cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, text=True, cwd=ROOT
@@ -93,7 +93,7 @@ def _check_window(f: dict, kind: str, a: float, b: float, recover: float) -> Non
 
 
 @pytest.mark.timeout(300)
-def test_sensor_and_controller_faults_hold_then_safe_then_recover(tmp_path: Path) -> None:
+def test_sensor_and_controller_faults_hold_then_safe_then_recover(tmp_path: Path, rt_args) -> None:
     windows = [
         ("silent", 1.5, 2.5),
         ("frozen", 3.5, 4.5),
@@ -105,7 +105,7 @@ def test_sensor_and_controller_faults_hold_then_safe_then_recover(tmp_path: Path
     for kind, a, b in windows:
         flag = "--plant-fault" if kind in ("silent", "frozen", "corrupt") else "--fault"
         args += [flag, f"{kind}@{a}:{b}"]
-    f = _run(tmp_path, *args)
+    f = _run(tmp_path, rt_args, *args)
     assert f["run"]["misses"] == 0
     reasons = f["run"]["skipped"]
     assert reasons.get("state", 0) > 0 and reasons.get("step", 0) > 0, reasons
@@ -118,10 +118,11 @@ def test_sensor_and_controller_faults_hold_then_safe_then_recover(tmp_path: Path
 
 
 @pytest.mark.timeout(300)
-def test_a_latched_fault_recovers_only_after_an_explicit_reset(tmp_path: Path) -> None:
+def test_a_latched_fault_recovers_only_after_an_explicit_reset(tmp_path: Path, rt_args) -> None:
     a, b, reset = 1.0, 1.0 + FAULT + 0.8, 1.0 + FAULT + 2.0
     f = _run(
         tmp_path,
+        rt_args,
         "--duration",
         f"{reset + 1.5:g}",
         "--plant-fault",

@@ -66,10 +66,11 @@ def _frames_from_candump(path: Path) -> list[dict]:
 
 
 @pytest.fixture(scope="module")
-def run_dir(tmp_path_factory) -> Path:
+def run_dir(tmp_path_factory, rt_args) -> Path:
     out = tmp_path_factory.mktemp("run")
     _ampc(
         "run",
+        *rt_args,
         "--channel",
         "slcan-pty:",
         "--scenario",
@@ -104,6 +105,29 @@ def test_ten_seconds_over_the_bus_no_miss_every_frame_checked(run_dir: Path) -> 
     # the bridge's log has the same torque frames
     bridge = _frames_from_candump(run_dir / "bridge.log")
     assert all(f["crc_ok"] for f in bridge) and len(bridge) >= len(logged) - 2
+
+
+@pytest.mark.timeout(120)
+def test_what_the_bridge_framed_is_the_simulated_limiter_of_each_command(run_dir: Path) -> None:
+    """Each tick's command, as the bridge framed it at its tick: the limiter the
+    simulation uses (``bridge_actuators``), from the previous frame."""
+    import jax.numpy as jnp
+
+    from ampc_jax.vehicle.actuators import bridge_actuators
+
+    t = pq.read_table(run_dir / "ticks.parquet").to_pydict()
+    wheels = ("FL", "FR", "RL", "RR")
+    cmd = np.stack([t[f"cmd_{w}"] for w in wheels], axis=1)
+    framed = np.stack([t[f"framed_{w}"] for w in wheels], axis=1)
+    checked = 0
+    for i in range(1, len(cmd)):
+        if not (t["sent"][i] and t["sent"][i - 1] and t["bridge_mode"][i] == "active"):
+            continue
+        prev = jnp.asarray(np.round(framed[i - 1] / 2.0).astype(np.int32))
+        _, want = bridge_actuators(prev, jnp.asarray(cmd[i]))
+        np.testing.assert_array_equal(framed[i], np.asarray(want), err_msg=f"tick {i}")
+        checked += 1
+    assert checked >= 190
 
 
 @pytest.mark.timeout(240)
@@ -165,9 +189,9 @@ def test_an_exported_artefact_gives_the_in_process_commands(run_dir: Path, tmp_p
 
 
 @pytest.mark.timeout(200)
-def test_killing_the_runtime_leaves_no_stale_torque(tmp_path: Path) -> None:
+def test_killing_the_runtime_leaves_no_stale_torque(tmp_path: Path, rt_args) -> None:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    args = [sys.executable, "-m", "ampc_jax.cli", "run", "--channel", "slcan-pty:"]
+    args = [sys.executable, "-m", "ampc_jax.cli", "run", *rt_args, "--channel", "slcan-pty:"]
     args += ["--scenario", SCENARIO, "--duration", "6", "--with-plant", "--out", str(tmp_path)]
     proc = subprocess.Popen(
         args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, text=True

@@ -1,7 +1,8 @@
 """The runtime's controller step and its exported artefact.
 
 * ``command_problem``: the rule of what may be sent (a usable solve, finite
-  torques, each inside its wheel's range) and nothing else is refused.
+  torques, agent inputs within their bounds) and nothing else is refused;
+  ``clamp_to_limits`` clamps a wheel torque to its actuator's range.
 * ``RuntimeStep``: the compiled step is ``Controller.step`` on the estimator's
   measurement; float32 commands stay within one bus torque step of float64.
 * ``export_step`` / ``load_artefact``: a round trip runs the same step bit for
@@ -24,7 +25,13 @@ from jax import export
 from ampc_jax.closed_loop import config_for
 from ampc_jax.runtime.artefact import ARTEFACT_FORMAT, ArtefactError, export_step, load_artefact
 from ampc_jax.runtime.signals import BUS_FIELDS, bus_measurement, bus_vector
-from ampc_jax.runtime.step import RuntimeStep, StepReport, command_problem
+from ampc_jax.runtime.step import (
+    BOUND_TOL_NM,
+    RuntimeStep,
+    StepReport,
+    clamp_to_limits,
+    command_problem,
+)
 from ampc_jax.vehicle.actuators import ACTUATORS, TORQUE_STEP_NM
 from ampc_jax.vehicle.manoeuvres import (
     DriverParams,
@@ -43,8 +50,8 @@ TICKS = 6
 WHEELS = ("FL", "FR", "RL", "RR")
 
 
-def _report(status: int = 0, fallback: bool = False) -> StepReport:
-    return StepReport(np.int32(7), np.int32(status), np.bool_(fallback), 1e-6, 1e-6)
+def _report(status: int = 0, fallback: bool = False, violation: float = 0.0) -> StepReport:
+    return StepReport(np.int32(7), np.int32(status), np.bool_(fallback), 1e-6, 1e-6, violation)
 
 
 # -- command_problem --------------------------------------------------------------
@@ -90,29 +97,34 @@ def test_command_problem_refuses_a_wrong_shape() -> None:
     assert command_problem(np.zeros((1, 4)), _report()) is not None
 
 
+def test_command_problem_refuses_inputs_beyond_their_bounds() -> None:
+    assert command_problem(np.zeros(4), _report(violation=0.5)) is None  # within the tolerance
+    why = command_problem(np.zeros(4), _report(violation=BOUND_TOL_NM + 0.5))
+    assert why is not None and "leaves its bounds" in why
+    assert command_problem(np.zeros(4), _report(violation=np.nan)) is not None
+
+
 @pytest.mark.parametrize("wheel", range(4))
-def test_command_problem_refuses_out_of_range(wheel: int) -> None:
+def test_out_of_range_wheel_torques_are_clamped_and_named(wheel: int) -> None:
     w = ACTUATORS.wheels[wheel]
-    for x in (w.min_nm - 1.0, w.max_nm + 1.0):
+    for x, edge in ((w.min_nm - 1.0, w.min_nm), (w.max_nm + 1.0, w.max_nm)):
         t = np.zeros(4)
         t[wheel] = x
-        why = command_problem(t, _report())
-        assert why is not None, (WHEELS[wheel], x)
-        assert f"torque {WHEELS[wheel]} " in why and f"[{w.min_nm:g}, {w.max_nm:g}]" in why
-    # a front wheel brakes only: any drive torque is out of its range
-    if w.max_nm == 0.0:
-        t = np.zeros(4)
-        t[wheel] = 0.5
-        assert command_problem(t, _report()) is not None
+        out, note = clamp_to_limits(t)
+        assert out[wheel] == edge and note is not None and WHEELS[wheel] in note
+        assert np.all(np.delete(out, wheel) == 0.0)
+    out, note = clamp_to_limits(np.zeros(4))
+    assert note is None and np.all(out == 0.0)
 
 
-def test_command_problem_uses_the_limits_given() -> None:
+def test_clamp_uses_the_limits_given() -> None:
     tight = ACTUATORS._replace(
         wheels=tuple(w._replace(min_nm=-100.0, max_nm=100.0) for w in ACTUATORS.wheels)
     )
     t = np.array([-150.0, 0.0, 0.0, 0.0])
-    assert command_problem(t, _report()) is None
-    assert "torque FL" in command_problem(t, _report(), tight)
+    assert clamp_to_limits(t)[1] is None
+    out, note = clamp_to_limits(t, tight)
+    assert out[0] == -100.0 and "FL" in note
 
 
 # -- RuntimeStep ----------------------------------------------------------------
