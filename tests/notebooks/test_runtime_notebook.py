@@ -5,7 +5,8 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = [pytest.mark.timeout(300), pytest.mark.both_cores]
+# a closed loop, a simulation and a replay (about a minute): `pytest -m slow`
+pytestmark = [pytest.mark.timeout(300), pytest.mark.both_cores, pytest.mark.slow]
 
 ROOT = Path(__file__).parents[2]
 NOTEBOOK = ROOT / "notebooks" / "runtime_over_the_bus.ipynb"

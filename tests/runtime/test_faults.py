@@ -18,7 +18,9 @@ import pytest
 
 import can_bridge
 
-pytestmark = [pytest.mark.both_cores]
+# Two runs of 12 and 7 s over the pty: behind the slow marker, so that the
+# default suite stays under 10 minutes on 2 cores (`pytest -m slow` runs them).
+pytestmark = [pytest.mark.both_cores, pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[2]
 SCENARIO = "cruise_lane_change"

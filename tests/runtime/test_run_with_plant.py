@@ -188,6 +188,7 @@ def test_an_exported_artefact_gives_the_in_process_commands(run_dir: Path, tmp_p
         np.testing.assert_array_equal(np.asarray(T), logged[i])
 
 
+@pytest.mark.slow  # a run of its own over the pty (15 s)
 @pytest.mark.timeout(200)
 def test_killing_the_runtime_leaves_no_stale_torque(tmp_path: Path, rt_args) -> None:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
