@@ -177,7 +177,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         fn, leaves = step.compiled(), step.init_leaves()
         source = "compiled in process"
     print(f"controller step ready ({source}, {time.perf_counter() - t0:.1f} s)", flush=True)
-    duration = cfg_duration(args, cfg)
+    duration = _run_duration(args)
     plant_cmd = None
     if args.with_plant:
         plant_cmd = [
@@ -249,7 +249,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
-def cfg_duration(args: argparse.Namespace, cfg: Any) -> float:
+def _run_duration(args: argparse.Namespace) -> float:
+    """``--duration``, or the scenario's duration."""
     from ..vehicle import SCENARIOS
 
     return float(args.duration if args.duration is not None else SCENARIOS[args.scenario].duration)

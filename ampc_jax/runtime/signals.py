@@ -25,7 +25,7 @@ import numpy as np
 from jax import Array
 
 from ..closed_loop.controller import DriverInputs
-from ..vehicle.params import Measurement, VehicleParams
+from ..vehicle.params import WHEELS, Measurement, VehicleParams
 from ..vehicle.plant import PlantState, measure
 
 __all__ = [
@@ -110,7 +110,7 @@ def bus_from_bridge(state: dict[str, Any]) -> tuple[np.ndarray | None, str | Non
     wheels = state.get("wheel_speeds_radps")
     for i, name in enumerate(BUS_FIELDS):
         if name.startswith("omega_"):
-            v = None if wheels is None else wheels["FL FR RL RR".split().index(name[6:])]
+            v = None if wheels is None else wheels[WHEELS.index(name[6:])]
         else:
             v = state.get(_BRIDGE_KEYS[name])
         if v is None or not np.isfinite(v):
