@@ -18,7 +18,7 @@ import numpy as np
 
 from .acceleration import anderson_init, anderson_step
 
-__all__ = ["check_iterations", "run_fixed", "run_while"]
+__all__ = ["check_iterations", "loop_parts", "run_fixed", "run_while", "still_running"]
 
 
 def check_iterations(iterations: Any, name: str = "iterations") -> int:
@@ -32,14 +32,16 @@ def check_iterations(iterations: Any, name: str = "iterations") -> int:
     return int(iterations)
 
 
-def _loop(
+def loop_parts(
     step: Callable[[Any], Any],
     state: Any,
     anderson: int,
     point: Callable[[Any], Any],
     at: Callable[[Any, Any], Any],
 ) -> tuple[Any, Callable[[Any], Any], Callable[[Any], Any]]:
-    """The loop's initial carry, one iteration, and the iterate inside the carry."""
+    """The loop's initial carry, one iteration, and the iterate inside the carry
+    (the pieces :func:`run_while`, :func:`run_fixed` and the sweep's segmented
+    runner, :mod:`ampc_jax.sweep.engine`, are built from)."""
     if not anderson:
         return state, step, lambda st: st
 
@@ -49,6 +51,13 @@ def _loop(
         return out, anderson_step(a, point(out))
 
     return (state, anderson_init(point(state), anderson)), accelerated, lambda c: c[0]
+
+
+def still_running(st: Any, converged: Callable[[Any], Any], max_iter: int) -> Any:
+    """Whether :func:`run_while` iterates again from ``st``: under the cap, not
+    converged (eq.Convergence) and every residual finite (or none computed yet)."""
+    finite = jnp.all(jnp.isfinite(st.primal) | (st.iteration == 0))
+    return (st.iteration < max_iter) & ~converged(st) & finite
 
 
 def run_while(
@@ -66,10 +75,9 @@ def run_while(
     ``point`` / ``at`` map it to and from the accelerated vector (``anderson`` > 0)."""
 
     def cond(st: Any) -> Any:
-        finite = jnp.all(jnp.isfinite(st.primal) | (st.iteration == 0))
-        return (st.iteration < max_iter) & ~converged(st) & finite
+        return still_running(st, converged, max_iter)
 
-    carry, body, iterate_of = _loop(step, state, anderson, point, at)
+    carry, body, iterate_of = loop_parts(step, state, anderson, point, at)
     return iterate_of(jax.lax.while_loop(lambda c: cond(iterate_of(c)), body, carry))
 
 
@@ -84,6 +92,6 @@ def run_fixed(
 ) -> Any:
     """Exactly ``iterations`` steps under ``lax.scan`` (differentiable)."""
     iterations = check_iterations(iterations)
-    carry, body, iterate_of = _loop(step, state, anderson, point, at)
+    carry, body, iterate_of = loop_parts(step, state, anderson, point, at)
     out, _ = jax.lax.scan(lambda c, _: (body(c), None), carry, None, length=iterations)
     return iterate_of(out)

@@ -1,0 +1,228 @@
+"""``ampc sweep``: cases of a scenario family against a grid of rho scales, to Parquet."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from typing import Any
+
+from .args import arg_type, at_least_one, fail, output_dir, over_relaxation, positive_finite
+
+__all__ = ["add_sweep_command", "cmd_sweep"]
+
+RHO_DEFAULT = "0.1:10:13"
+
+
+def _force_cpu_devices(n: int) -> None:
+    """``n`` CPU devices (XLA's host-platform count; read when JAX's backend starts)."""
+    flag = f"--xla_force_host_platform_device_count={n}"
+    old = os.environ.get("XLA_FLAGS", "")
+    parts = [p for p in old.split() if not p.startswith("--xla_force_host_platform_device_count")]
+    os.environ["XLA_FLAGS"] = " ".join([*parts, flag])
+
+
+def _quantile_lines(table: Any) -> list[str]:
+    import numpy as np
+
+    rho = table.column("rho_scale").to_numpy()
+    it = table.column("iterations").to_numpy()
+    conv = table.column("converged").to_numpy()
+    e = table.column("e_sub").to_numpy()
+    lines = [
+        f"{'rho scale':>10} {'median':>7} {'p95':>7} {'max':>6} {'conv %':>7} {'max e_sub':>10}"
+    ]
+    for s in np.unique(rho):
+        m = rho == s
+        ee = e[m & conv]
+        worst = f"{np.nanmax(ee):10.2e}" if ee.size and np.isfinite(ee).any() else f"{'-':>10}"
+        lines.append(
+            f"{s:10.4g} {np.median(it[m]):7.0f} {np.percentile(it[m], 95):7.0f} "
+            f"{it[m].max():6d} {100 * conv[m].mean():7.1f} {worst}"
+        )
+    return lines
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    """Run ``ampc sweep`` (exit 0; 2 on bad input)."""
+    if args.cpu_devices > 1:
+        _force_cpu_devices(args.cpu_devices)
+    import jax
+
+    if args.num_processes > 1:
+        if args.coordinator is None or args.process_id is None:
+            return fail("--coordinator: several processes need --coordinator and --process-id")
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+        jax.distributed.initialize(
+            coordinator_address=args.coordinator,
+            num_processes=args.num_processes,
+            process_id=args.process_id,
+        )
+    if not args.float32:
+        jax.config.update("jax_enable_x64", True)
+    from ..sweep import SweepSpec, rho_grid, run_sweep
+    from ..sweep.families import FAMILIES
+
+    if args.family not in FAMILIES:
+        return fail(f"--family: expected one of {sorted(FAMILIES)}, got {args.family!r}")
+    try:
+        grid = rho_grid(args.rho)
+    except ValueError as exc:
+        return fail(f"--rho: {exc}")
+    err = output_dir(args.out)
+    if err:
+        return fail(err)
+    try:
+        spec = SweepSpec(
+            family=args.family,
+            cases=args.cases,
+            rho=grid,
+            formulation=args.formulation,
+            seed=args.seed,
+            tol=args.tol,
+            relaxation=args.relaxation,
+            anderson=args.anderson,
+            max_iter=args.max_iter,
+            horizon=args.horizon,
+            chunk=args.chunk,
+            float32=args.float32,
+            compaction=not args.no_compaction,
+        )
+        summary = run_sweep(
+            spec, args.out, progress=False if args.quiet else None, figures=not args.no_figures
+        )
+    except ValueError as exc:
+        msg = str(exc)
+        flag = msg.split(":", 1)[0].replace("_", "-")
+        return fail(f"--{flag}:{msg.split(':', 1)[1]}" if ":" in msg else msg)
+    if jax.process_index() != 0:
+        return 0
+    import pyarrow.parquet as pq
+
+    tab = pq.read_table(summary.table)
+    solves = summary.rows / summary.solve_s if summary.solve_s > 0 else float("nan")
+    print(
+        f"ampc sweep: {summary.rows} rows ({spec.cases} cases x {len(grid)} rho points) "
+        f"on {summary.devices} device(s), {summary.processes} process(es); "
+        f"{summary.chunks_run} chunk(s) run, {summary.chunks_skipped} skipped"
+    )
+    if summary.chunks_run:
+        steady = summary.extra.get("steady_pairs_per_s")
+        rate = (
+            f"{steady:,.0f} case-point solves/s after the first chunk"
+            if steady
+            else f"{solves:,.0f} case-point solves/s, compile included"
+        )
+        print(
+            f"  solve {summary.solve_s:.1f} s ({rate}), reference {summary.reference_s:.1f} s, "
+            f"waste {summary.waste:.2f}x (pair-iterations computed / needed)"
+        )
+    for line in _quantile_lines(tab):
+        print("  " + line)
+    print(f"  table: {summary.table}")
+    for f in summary.figures:
+        print(f"  figure: {f}")
+    sys.stdout.flush()
+    return 0
+
+
+def add_sweep_command(sub: Any) -> None:
+    """Register ``ampc sweep``."""
+    from ..formulations import FORMULATIONS
+
+    p = sub.add_parser(
+        "sweep",
+        help="iterations, accuracy and status over many cases and rho scales (Parquet)",
+        description=(
+            "Solve cases of a scenario family for every point of a rho-scale grid in one "
+            "compiled program (compaction; sharded over all devices), compare each first "
+            "step with the integrated optimum (Clarabel), and write OUT/sweep.parquet, "
+            "OUT/sweep.json and figures. A rerun into the same OUT resumes."
+        ),
+    )
+    p.add_argument(
+        "--family",
+        required=True,
+        help="scenario family: cruise_step, stability_step or generated (required)",
+    )
+    p.add_argument(
+        "--cases",
+        type=arg_type(at_least_one, int),
+        default=1000,
+        help="number of cases (default: 1000)",
+    )
+    p.add_argument(
+        "--rho",
+        default=RHO_DEFAULT,
+        help=f"rho-scale grid, LO:HI:N geometric or a comma list (default: {RHO_DEFAULT})",
+    )
+    p.add_argument(
+        "--formulation",
+        default="local_explicit",
+        choices=sorted(FORMULATIONS),
+        help="formulation (default: local_explicit)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="the family's seed (default: 0)")
+    p.add_argument(
+        "--tol",
+        type=arg_type(positive_finite),
+        default=None,
+        help="eps_r = eps_s of eq.Convergence (default: 1 Nm^2 for the vehicle families, 1e-6 otherwise)",
+    )
+    p.add_argument(
+        "--relaxation",
+        type=arg_type(over_relaxation),
+        default=1.0,
+        help="over-relaxation in (0, 2) (default: 1.0, the paper)",
+    )
+    p.add_argument(
+        "--anderson", type=int, default=0, choices=range(4), help="Anderson memory (default: 0)"
+    )
+    p.add_argument(
+        "--max-iter",
+        type=arg_type(at_least_one, int),
+        default=500,
+        help="iteration cap (default: 500)",
+    )
+    p.add_argument(
+        "--horizon",
+        type=arg_type(at_least_one, int),
+        default=None,
+        help="N_p (default: the family's own: 2 cruise, 3 stability, 10 generated)",
+    )
+    p.add_argument(
+        "--chunk",
+        type=arg_type(at_least_one, int),
+        default=256,
+        help="cases per chunk: the memory bound and the resume grain (default: 256)",
+    )
+    p.add_argument("--float32", action="store_true", help="solve in float32 (default: float64)")
+    p.add_argument(
+        "--no-compaction",
+        action="store_true",
+        help="plain vmap of the while loop (default: compaction on)",
+    )
+    p.add_argument(
+        "--cpu-devices",
+        type=arg_type(at_least_one, int),
+        default=1,
+        help="CPU devices to force (XLA host-platform count) and shard over (default: 1)",
+    )
+    p.add_argument(
+        "--num-processes",
+        type=arg_type(at_least_one, int),
+        default=1,
+        help="processes of a jax.distributed run (default: 1)",
+    )
+    p.add_argument(
+        "--process-id", type=int, default=None, help="this process's index (default: none)"
+    )
+    p.add_argument(
+        "--coordinator",
+        default=None,
+        help="host:port of the jax.distributed coordinator (default: none)",
+    )
+    p.add_argument("--no-figures", action="store_true", help="skip the figures (default: draw)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar (default: on a terminal)")
+    p.add_argument("--out", default="sweep", help="output directory (default: sweep)")
+    p.set_defaults(func=cmd_sweep)

@@ -1,0 +1,298 @@
+"""One compiled program over many (case, parameter point) pairs, with compaction.
+
+A sweep solves the same formulation for B pairs (a case's
+:class:`~ampc_jax.problem.ProblemData` and a
+:class:`~ampc_jax.admm.SolverParams` point) in one program: the setups
+(H_j, E_j, rho_j, the factorisation of K_j) are vmapped over the pairs, and the
+ADMM iterations run in *segments* of ``segment`` iterations.
+
+* **Freezing.** Inside a segment a pair that has met eq.Convergence (or its
+  cap, or a non-finite residual) keeps its state (a ``where`` on the whole
+  carry), so every pair reports the iteration count it gets alone
+  (``tests/sweep/test_engine.py``).
+* **Compaction.** ``jax.vmap`` of a ``while_loop`` computes every pair until
+  the slowest is done: the waste is B * max_q(iterations) against
+  sum_q(iterations). Between segments the pairs still running are moved to
+  the front (a stable ``argsort`` of the running flags) and the next segment
+  runs on the first ``size`` of them only, ``size`` the smallest of a static
+  ladder of bucket sizes (B, B/2, B/4, ..., ``min_bucket``) that holds them:
+  one ``lax.switch`` branch per bucket, so the program is compiled once and a
+  sweep's wall time tracks the typical pair, not the worst. :class:`Work`
+  counts the pair-iterations computed and needed, for both runners.
+
+Under :func:`sweep_solve` with several devices, the pair axis is split over
+them with ``jax.shard_map`` (each device compacts its own share); with
+several processes after ``jax.distributed.initialize()`` the same program runs
+on global arrays (:func:`global_pairs`) and each process reads back the
+shards it holds. Nothing crosses devices, so there are no collectives.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import NamedSharding, PartitionSpec
+
+from ..admm.params import SolverParams
+from ..admm.runners import loop_parts, still_running
+from ..problem.condensed import merged_data
+from ..problem.data import ProblemData
+
+__all__ = [
+    "PairResult",
+    "Work",
+    "bucket_sizes",
+    "global_pairs",
+    "pair_params",
+    "solve_pairs",
+    "sweep_solve",
+]
+
+
+class PairResult(NamedTuple):
+    """What a sweep keeps of one (case, point) solve (leading axis: pairs).
+
+    u0 : (n_u,) first-step inputs (consensus, projected on the bounds).
+    iterations, converged, status : as :class:`~ampc_jax.results.SolveResult`.
+    primal, dual : () the largest objective's squared residuals.
+    rho : (n_rho,) the rho_j used.
+    violation : () the largest violation of a constraint row over the horizon,
+        max(0, max_k,c (A_in U^(k) - b_in^(k))_c) in the rows' units.
+    """
+
+    u0: Any
+    iterations: Any
+    converged: Any
+    status: Any
+    primal: Any
+    dual: Any
+    rho: Any
+    violation: Any
+
+
+class Work(NamedTuple):
+    """Pair-iterations a run computed, and the ones its pairs needed (sum of iterations)."""
+
+    computed: Any
+    needed: Any
+
+    @property
+    def waste(self) -> float:
+        """computed / needed (1 is no waste)."""
+        return float(self.computed) / max(float(self.needed), 1.0)
+
+
+def _core(solver: Any) -> tuple[Any, Any]:
+    """The solver with setup / init / step / result, and the data map it needs
+    (:class:`~ampc_jax.formulations.IntegratedADMM` runs Local Explicit on the merged problem)."""
+    if hasattr(solver, "setup") and hasattr(solver, "step"):
+        return solver, lambda d: d
+    if hasattr(solver, "inner"):
+        return solver.inner, merged_data
+    raise TypeError(
+        f"formulation: {type(solver).__name__} has no setup/step pair for a segmented sweep"
+    )
+
+
+def bucket_sizes(batch: int, min_bucket: int = 8) -> tuple[int, ...]:
+    """The compaction ladder, largest first: ``batch``, then halvings down to ``min_bucket``."""
+    sizes = [int(batch)]
+    while sizes[-1] // 2 >= max(int(min_bucket), 1):
+        sizes.append(sizes[-1] // 2)
+    return tuple(sizes)
+
+
+def _take(tree: Any, idx: Any) -> Any:
+    return jax.tree.map(lambda x: x[idx], tree)
+
+
+def _where(go: Any, new: Any, old: Any) -> Any:
+    return jax.tree.map(lambda a, b: jnp.where(go, a, b), new, old)
+
+
+def violation(data: ProblemData, u: Any) -> Any:
+    """max(0, max_k,c (A_in U^(k) - b_in^(k))_c): the worst constraint row of ``u`` (N_p, n_u)."""
+    if data.Ain.shape[0] == 0:
+        return jnp.zeros((), u.dtype)
+    return jnp.maximum(jnp.max(u @ data.Ain.T - data.bin), 0.0)
+
+
+def solve_pairs(
+    solver: Any,
+    data: ProblemData,
+    params: SolverParams,
+    *,
+    compaction: bool = True,
+    segment: int = 16,
+    min_bucket: int = 16,
+) -> tuple[PairResult, Work]:
+    """Solve B pairs (leading axis of ``data`` and ``params``) on one device, to tolerance.
+
+    ``compaction`` False runs ``jax.vmap`` of the formulation's ``while_loop``
+    (every pair iterates until the slowest is done; frozen by JAX's batching
+    rule); True runs segments of ``segment`` iterations on the pairs still
+    running (see the module docstring). Results are the same pair by pair.
+    Returns the per-pair :class:`PairResult` and the :class:`Work` done. Jittable.
+    """
+    core, to_core = _core(solver)
+    max_iter = core.max_iter
+    B = int(np.shape(jax.tree.leaves(data)[0])[0])
+    setups = jax.vmap(lambda d, p: core.setup(to_core(d), p))(data, params)
+    states = jax.vmap(core.init)(setups)
+    anderson = getattr(core, "anderson", 0)
+
+    def parts(setup: Any, st: Any) -> tuple[Any, Any, Any]:
+        return loop_parts(lambda s: core.step(setup, s), st, anderson, core._point, core._at)
+
+    def iterate_of(carry: Any) -> Any:
+        return carry[0] if anderson else carry
+
+    def running(setup: Any, carry: Any) -> Any:
+        return still_running(iterate_of(carry), lambda s: core.converged(setup, s), max_iter)
+
+    if not compaction:
+        finals = jax.vmap(core.run)(setups, states)
+        it = finals.iteration
+        work = Work(B * jnp.max(it), jnp.sum(it))
+    else:
+        if int(segment) < 1:
+            raise ValueError(f"segment: expected an integer >= 1, got {segment!r}")
+        seg = int(segment)
+
+        def segment_of(setup: Any, carry: Any) -> Any:
+            _, body, _ = parts(setup, iterate_of(carry))
+
+            def one(c: Any, _: Any) -> tuple[Any, None]:
+                return _where(running(setup, c), body(c), c), None
+
+            return jax.lax.scan(one, carry, None, length=seg)[0]
+
+        carry0 = jax.vmap(lambda s, st: parts(s, st)[0])(setups, states)
+        sizes = bucket_sizes(B, min_bucket)
+        ladder = jnp.asarray(sizes)
+
+        def branch(size: int) -> Any:
+            def run(args: tuple) -> tuple:
+                carry, idx = args
+                sel = idx[:size]
+                new = jax.vmap(segment_of)(_take(setups, sel), _take(carry, sel))
+                carry = jax.tree.map(lambda x, y: x.at[sel].set(y), carry, new)
+                return carry, jnp.asarray(size * seg, jnp.int32)
+
+            return run
+
+        branches = [branch(s) for s in sizes]
+
+        def loop_cond(loop: tuple) -> Any:
+            return jnp.any(jax.vmap(running)(setups, loop[0]))
+
+        def loop_body(loop: tuple) -> tuple:
+            carry, computed = loop
+            go = jax.vmap(running)(setups, carry)
+            n = jnp.sum(go)
+            idx = jnp.argsort(~go, stable=True)  # the running pairs first
+            k = jnp.sum(ladder >= n) - 1  # the smallest bucket that holds them
+            carry, c = jax.lax.switch(k, branches, (carry, idx))
+            return carry, computed + c
+
+        carry, computed = jax.lax.while_loop(
+            loop_cond, loop_body, (carry0, jnp.zeros((), jnp.int32))
+        )
+        finals = jax.vmap(iterate_of)(carry)
+        work = Work(computed, jnp.sum(finals.iteration))
+    res = jax.vmap(core.result)(setups, finals)
+    viol = jax.vmap(violation)(data, res.u)
+    out = PairResult(
+        u0=res.u[:, 0, :],
+        iterations=res.iterations,
+        converged=res.converged,
+        status=res.status,
+        primal=jnp.max(res.primal_residual, axis=-1),
+        dual=jnp.max(res.dual_residual, axis=-1),
+        rho=res.rho,
+        violation=viol,
+    )
+    return out, work
+
+
+def pair_params(solver: Any, grid: SolverParams, n_cases: int) -> SolverParams:
+    """``grid`` (leading axis P) tiled for ``n_cases`` cases: pair q = case q // P, point q % P."""
+    return jax.tree.map(
+        lambda x: jnp.tile(jnp.asarray(x), (int(n_cases),) + (1,) * (jnp.ndim(x) - 1)), grid
+    )
+
+
+def pair_data(data: ProblemData, n_points: int) -> ProblemData:
+    """Each case's data repeated for the ``n_points`` points of a grid (pairs case-major)."""
+    return jax.tree.map(lambda x: jnp.repeat(jnp.asarray(x), n_points, axis=0), data)
+
+
+def _mesh(devices: Sequence[Any]) -> jax.sharding.Mesh:
+    return jax.sharding.Mesh(np.asarray(list(devices)), ("pairs",))
+
+
+def global_pairs(tree: Any, mesh: jax.sharding.Mesh) -> Any:
+    """A pytree of host arrays (every process holds all of it) as global
+    ``jax.Array``s split along their leading axis over ``mesh``; each process
+    places only the shards of its own devices (``jax.make_array_from_callback``)."""
+    sharding = NamedSharding(mesh, PartitionSpec("pairs"))
+
+    def put(x: Any) -> Any:
+        a = np.asarray(x)
+        return jax.make_array_from_callback(a.shape, sharding, lambda idx: a[idx])
+
+    return jax.tree.map(put, tree)
+
+
+def sweep_solve(
+    solver: Any,
+    data: ProblemData,
+    params: SolverParams,
+    *,
+    devices: Sequence[Any] | None = None,
+    compaction: bool = True,
+    segment: int = 16,
+    min_bucket: int = 16,
+) -> tuple[PairResult, Work]:
+    """:func:`solve_pairs` with the pair axis split over ``devices`` (default: all of
+    ``jax.devices()``, every process's), by ``jax.shard_map``.
+
+    ``data`` and ``params`` hold B pairs on their leading axis, B a multiple
+    of the device count (pad with copies; the sweep runner does). Returns
+    global arrays: each process reads the shards of its own devices
+    (``addressable_shards``); with one process, ``np.asarray`` reads them all.
+    :class:`Work` is summed over devices.
+    """
+    devs = list(jax.devices() if devices is None else devices)
+    B = int(np.shape(jax.tree.leaves(data)[0])[0])
+    if B % len(devs):
+        raise ValueError(f"pairs: {B} pairs do not split over {len(devs)} devices; pad them")
+    fn, mesh = _program(solver, tuple(devs), bool(compaction), int(segment), int(min_bucket))
+    if jax.process_count() > 1:
+        data, params = global_pairs(data, mesh), global_pairs(params, mesh)
+    return fn(data, params)
+
+
+@functools.lru_cache(maxsize=32)
+def _program(
+    solver: Any, devices: tuple, compaction: bool, segment: int, min_bucket: int
+) -> tuple[Any, jax.sharding.Mesh]:
+    """The jitted, sharded sweep program for one static configuration (compiled
+    once per pair count and dtype, then reused by every chunk)."""
+    mesh = _mesh(devices)
+    spec = PartitionSpec("pairs")
+    kw = {"compaction": compaction, "segment": segment, "min_bucket": min_bucket}
+
+    def local(d: Any, p: Any) -> tuple:
+        out, work = solve_pairs(solver, d, p, **kw)
+        return out, jax.tree.map(lambda x: jnp.reshape(x, (1,)), work)
+
+    sharded = jax.shard_map(
+        local, mesh=mesh, in_specs=(spec, spec), out_specs=spec, check_vma=False
+    )
+    return jax.jit(sharded), mesh

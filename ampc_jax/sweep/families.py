@@ -1,0 +1,317 @@
+"""Scenario families: seeded, reproducible sets of cases a sweep or a tuning run is over.
+
+A family draws ``n`` cases from a seed. Two kinds:
+
+* ``"step"`` -- single control steps: one :class:`~ampc_jax.problem.ProblemData`
+  per case, all of one :class:`~ampc_jax.problem.Topology` (stacked on a leading
+  axis), and the sampled operating point of each case as columns
+  (:class:`StepCases`). The vehicle families linearise the example's model
+  (eq.CC_system / eq.VSC_system) at a plant state drawn over the example's
+  envelope (speed, friction, steering, driver torque, yaw rate, side slip,
+  wheel slip), exactly as :meth:`Controller.problem_data` does in closed loop;
+  the generated family perturbs one random problem's initial state and
+  references (:func:`~ampc_jax.generate.random_problem`).
+* ``"loop"`` -- whole closed-loop manoeuvres: a registered scenario with its
+  friction, speed profile and steering amplitude (the lateral offset of its
+  lane changes) drawn per case (:class:`LoopCases`).
+
+Case ``i`` of a family depends only on (seed, i): drawing 100 cases and then
+1,000 gives the same first 100, so a sweep can be split in chunks, resumed
+and sharded over processes without changing any case. ``register_family``
+adds one from Python (``docs/sweeps.md``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = [
+    "FAMILIES",
+    "Family",
+    "LoopCases",
+    "StepCases",
+    "family",
+    "register_family",
+]
+
+
+class StepCases(NamedTuple):
+    """Single-step cases: the solver structure, the stacked data and each case's draw.
+
+    ``config``: the :class:`~ampc_jax.closed_loop.SimConfig` the cases come
+    from (``None`` for generated problems); ``topology`` the static structure;
+    ``data`` a :class:`ProblemData` with a leading case axis; ``columns``
+    name -> (n,) array of the sampled operating point (with ``case``, the
+    case's index in the family).
+    """
+
+    config: Any
+    topology: Any
+    data: Any
+    columns: dict[str, np.ndarray]
+
+
+class LoopCases(NamedTuple):
+    """Closed-loop cases: the run's configuration, the stacked scenarios, their draw."""
+
+    config: Any
+    scenarios: Any  # Scenario with a leading case axis (NumPy float64)
+    n_steps: int
+    columns: dict[str, np.ndarray]
+
+
+@dataclass(frozen=True)
+class Family:
+    """A named, seeded source of cases.
+
+    ``sample(n, seed, start, **options)`` returns cases ``start .. start + n - 1``
+    (:class:`StepCases` for ``kind="step"``, :class:`LoopCases` for ``"loop"``),
+    each a function of (seed, index) alone.
+    """
+
+    name: str
+    kind: str
+    description: str
+    sampler: Callable[..., Any] = field(repr=False, compare=False)
+    options: tuple[str, ...] = ()
+
+    def sample(self, n: int, seed: int = 0, start: int = 0, **options: Any) -> Any:
+        """Cases ``start`` .. ``start + n - 1`` of this family under ``seed``."""
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+            raise ValueError(f"cases: expected an integer >= 1, got {n!r}")
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"seed: expected an integer >= 0, got {seed!r}")
+        if isinstance(start, bool) or not isinstance(start, (int, np.integer)) or start < 0:
+            raise ValueError(f"start: expected an integer >= 0, got {start!r}")
+        unknown = sorted(set(options) - set(self.options))
+        if unknown:
+            raise ValueError(
+                f"{unknown[0]}: not an option of family {self.name!r} "
+                f"(options: {', '.join(self.options) or 'none'})"
+            )
+        return self.sampler(int(n), int(seed), int(start), **options)
+
+
+FAMILIES: dict[str, Family] = {}
+"""Registry: name -> :class:`Family` (:func:`register_family` adds one)."""
+
+
+def register_family(fam: Family) -> Family:
+    """Add ``fam`` to :data:`FAMILIES` (ValueError if the name is taken or the kind unknown)."""
+    if fam.kind not in ("step", "loop"):
+        raise ValueError(f"kind: expected 'step' or 'loop', got {fam.kind!r}")
+    if fam.name in FAMILIES:
+        raise ValueError(f"family: {fam.name!r} is already registered")
+    FAMILIES[fam.name] = fam
+    return fam
+
+
+def family(name: str | Family) -> Family:
+    """The registered family ``name`` (ValueError listing them otherwise)."""
+    if isinstance(name, Family):
+        return name
+    if name not in FAMILIES:
+        raise ValueError(f"family: expected one of {sorted(FAMILIES)}, got {name!r}")
+    return FAMILIES[name]
+
+
+def case_rng(seed: int, index: int, stream: int = 0) -> np.random.Generator:
+    """The generator of case ``index`` under ``seed`` (independent of the other cases)."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed), int(stream), int(index)]))
+
+
+def _uniform(rngs: list[np.random.Generator], low: float, high: float) -> np.ndarray:
+    return np.array([r.uniform(low, high) for r in rngs])
+
+
+# ------------------------------------------------------------------ single control steps
+ENVELOPES: dict[str, dict[str, tuple[float, float]]] = {
+    # speed (m/s), friction, road-wheel angle (rad, scaled down with speed so the
+    # lateral demand stays within mu g), driver torque (Nm), yaw-rate error on
+    # the steady-state reference (rad/s), side slip (rad), rear-wheel slip ratio
+    "cruise": {
+        "v_x": (6.0, 30.0),
+        "mu": (0.3, 1.0),
+        "steer_g": (-0.8, 0.8),
+        "driver_torque": (0.0, 0.0),
+        "yaw_error": (-0.15, 0.15),
+        "beta": (-0.04, 0.04),
+        "slip": (-0.03, 0.05),
+        "v_ref_offset": (-4.0, 4.0),
+    },
+    "stability": {
+        "v_x": (2.0, 20.0),
+        "mu": (0.2, 1.0),
+        "steer_g": (-0.8, 0.8),
+        "driver_torque": (-2000.0, 3000.0),
+        "yaw_error": (-0.2, 0.2),
+        "beta": (-0.05, 0.05),
+        "slip": (-0.25, 0.35),
+        "v_ref_offset": (0.0, 0.0),
+    },
+}
+"""Ranges each vehicle family draws its operating point from (uniform).
+``steer_g``: the lateral acceleration the steering alone would ask, in units
+of mu g (kinematic: delta = steer_g mu g L / v^2, capped at the driver's 0.5 rad)."""
+
+
+def _vehicle_steps(
+    example_name: str,
+    n: int,
+    seed: int,
+    start: int,
+    *,
+    horizon: int | None = None,
+    formulation: str = "local_explicit",
+    dtype: Any = None,
+) -> StepCases:
+    from ..closed_loop.config import SimConfig
+    from ..closed_loop.controller import DriverInputs
+    from ..vehicle.examples import example
+    from ..vehicle.plant import PlantState, measure
+
+    settings = example(example_name).settings_type()
+    if horizon is not None:
+        settings = settings.replace(horizon=int(horizon))
+    cfg = SimConfig(example=example_name, formulation=formulation, settings=settings)
+    ctrl = cfg.controller()
+    dt = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+    params = cfg.loop_params(dt).controller
+    vp = cfg.vehicle
+    env = ENVELOPES[example_name]
+    rngs = [case_rng(seed, start + i) for i in range(n)]
+    cols = {k: _uniform(rngs, *env[k]) for k in env}
+    g, L = 9.81, vp.a + vp.b
+    v = cols["v_x"]
+    steer = np.clip(cols["steer_g"] * cols["mu"] * g * L / v**2, -0.5, 0.5)
+    r_ss = v * steer / (L * (1.0 + (v / 25.0) ** 2))  # steady yaw rate with understeer
+    r = r_ss + cols["yaw_error"]
+    v_y = v * np.tan(cols["beta"])
+    omega = np.stack([v, v, v * (1 + cols["slip"]), v * (1 + cols["slip"])], axis=1) / vp.R_w
+    v_ref = v + cols["v_ref_offset"]
+    cols = {"case": np.arange(start, start + n), **cols, "steer": steer, "yaw_rate": r}
+
+    def one(v_i, vy_i, r_i, om_i, st_i, mu_i, td_i, vr_i):
+        ps = PlantState(0.0 * v_i, 0.0 * v_i, 0.0 * v_i, v_i, vy_i, r_i, om_i, 0.0 * v_i, v_i * r_i)
+        meas = measure(ps, st_i, jnp.zeros(4, v_i.dtype), mu_i, vp)
+        seen = ctrl.example.driver_torque_seen(td_i, mpc=True)
+        return ctrl.problem_data(params, meas, DriverInputs(st_i, seen, vr_i, mu_i))
+
+    arrs = [
+        jnp.asarray(a, dt)
+        for a in (v, v_y, r, omega, steer, cols["mu"], cols["driver_torque"], v_ref)
+    ]
+    data = jax.jit(jax.vmap(one))(*arrs)
+    return StepCases(cfg, ctrl.topology, data, cols)
+
+
+def _generated_steps(
+    n: int,
+    seed: int,
+    start: int,
+    *,
+    n_objectives: int = 2,
+    horizon: int = 10,
+    structure_seed: int = 0,
+    dtype: Any = None,
+) -> StepCases:
+    from ..generate import random_problem
+
+    prob = random_problem(int(structure_seed), int(n_objectives), horizon=int(horizon))
+    T, base = prob.topology, prob.data()
+    dt = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+    rngs = [case_rng(seed, start + i, stream=1) for i in range(n)]
+    x_scale = _uniform(rngs, 0.0, 2.0)
+    ref_scale = _uniform(rngs, 0.2, 1.5)
+    x0 = np.stack([x_scale[i] * rngs[i].standard_normal(T.n_x) for i in range(n)])
+    data = jax.tree.map(lambda a: jnp.broadcast_to(jnp.asarray(a, dt), (n, *np.shape(a))), base)
+    data = data._replace(
+        x0=jnp.asarray(x0, dt),
+        ref=tuple(jnp.asarray(ref_scale, dt)[:, None, None] * r for r in data.ref),
+    )
+    cols = {"case": np.arange(start, start + n), "x0_scale": x_scale, "ref_scale": ref_scale}
+    return StepCases(None, T, data, cols)
+
+
+# ------------------------------------------------------------------ closed-loop manoeuvres
+def _cruise_manoeuvres(n: int, seed: int, start: int, *, dtype: Any = None) -> LoopCases:
+    """The cruise lane change with friction, speed profile and lane offset drawn per case."""
+    from ..closed_loop.config import config_for
+    from ..vehicle.manoeuvres import (
+        double_lane_change,
+        join_paths,
+        make_scenario,
+        scenario,
+        single_lane_change,
+    )
+
+    spec = scenario("cruise_lane_change")
+    rngs = [case_rng(seed, start + i, stream=2) for i in range(n)]
+    mu = _uniform(rngs, 0.5, 1.0)
+    speed = _uniform(rngs, 0.7, 1.15)  # factor on the profile's speeds
+    offset = _uniform(rngs, 1.5, 3.5)  # m, both lane changes (the steering amplitude)
+    scs = []
+    for i in range(n):
+        path = join_paths(
+            single_lane_change(25.0, 30.0, offset[i]), double_lane_change(85.0, -offset[i])
+        )
+        v = [18.0, 18.0, 11.0, 11.0, 17.0]
+        scs.append(
+            make_scenario(
+                mu[i],
+                18.0 * speed[i],
+                path,
+                ([0.0, 1.0, 4.5, 6.0, 12.0], [s * speed[i] for s in v]),
+            )
+        )
+    stacked = jax.tree.map(lambda *x: np.stack(x), *scs)
+    cols = {"case": np.arange(start, start + n), "mu": mu, "speed_scale": speed, "offset": offset}
+    return LoopCases(config_for(spec), stacked, spec.n_steps, cols)
+
+
+register_family(
+    Family(
+        "cruise_step",
+        "step",
+        "single control steps of the cruise example (LST + YRT) at operating points "
+        "over its envelope (ENVELOPES['cruise'])",
+        lambda n, seed, start, **kw: _vehicle_steps("cruise", n, seed, start, **kw),
+        ("horizon", "formulation", "dtype"),
+    )
+)
+register_family(
+    Family(
+        "stability_step",
+        "step",
+        "single control steps of the stability example (VSC + WSC) at operating points "
+        "over its envelope (ENVELOPES['stability'])",
+        lambda n, seed, start, **kw: _vehicle_steps("stability", n, seed, start, **kw),
+        ("horizon", "formulation", "dtype"),
+    )
+)
+register_family(
+    Family(
+        "generated",
+        "step",
+        "a random two-objective problem (generate.random_problem) with its initial "
+        "state and references drawn per case",
+        _generated_steps,
+        ("n_objectives", "horizon", "structure_seed", "dtype"),
+    )
+)
+register_family(
+    Family(
+        "cruise_lane_change",
+        "loop",
+        "the cruise lane change (16 s) with friction 0.5..1, speeds x0.7..1.15 and "
+        "lane offsets 1.5..3.5 m drawn per case",
+        _cruise_manoeuvres,
+        ("dtype",),
+    )
+)

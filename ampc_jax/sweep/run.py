@@ -1,0 +1,452 @@
+"""A whole sweep: cases of a family against a grid of rho scales, streamed in chunks to Parquet.
+
+:func:`run_sweep` draws the cases chunk by chunk (each chunk ``chunk`` cases
+times the grid's P points), solves every (case, point) pair in one compiled
+program (:func:`~ampc_jax.sweep.engine.sweep_solve`: compaction, the pair
+axis sharded over every device of every process), compares each pair's
+first-step inputs with the integrated optimum (Clarabel on the condensed QP,
+once per case) and writes one Parquet file per chunk under ``OUT/chunks/``.
+A rerun with the same settings skips the chunks already written (resume); a
+rerun with other settings into the same directory is refused. At the end the
+chunks are joined into ``OUT/sweep.parquet`` (one row per case and point,
+the run's metadata in the schema and in ``OUT/sweep.json``) and the figures
+are drawn (:mod:`ampc_jax.sweep.figures`).
+
+Memory is bounded by one chunk: 10,000 cases x 30 points x 2 objectives is
+40 chunks of 256 cases (7,680 pairs each) and a 300,000-row table.
+
+With several processes (``jax.distributed.initialize()`` before the call),
+every process runs the same chunks (the program is collective), writes the
+rows of the pairs its own devices hold to ``chunk_NNNNN.pKofN.parquet``, and
+process 0 joins the parts after a barrier
+(``multihost_utils.sync_global_devices``).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import time
+from dataclasses import asdict, dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..results import STATUS
+from .engine import Work, pair_data, pair_params, sweep_solve
+from .families import StepCases, family
+
+__all__ = ["SweepSpec", "SweepSummary", "rho_grid", "run_sweep"]
+
+FORMAT = "ampc-sweep/1"
+
+
+def rho_grid(text: str) -> tuple[float, ...]:
+    """A rho-scale grid from ``LO:HI:N`` (N points, geometric) or ``a,b,c``; ValueError otherwise."""
+    t = str(text).strip()
+    try:
+        if ":" in t:
+            lo, hi, n = t.split(":")
+            lo_f, hi_f, n_i = float(lo), float(hi), int(n)
+            if n_i < 1 or not (np.isfinite(lo_f) and np.isfinite(hi_f)) or lo_f <= 0 or hi_f <= 0:
+                raise ValueError
+            vals = np.geomspace(lo_f, hi_f, n_i)
+        else:
+            vals = np.array([float(x) for x in t.split(",") if x.strip()])
+    except ValueError:
+        raise ValueError(
+            f"expected LO:HI:N (N geometric points) or a comma list of positive numbers, got {text!r}"
+        ) from None
+    if vals.size == 0 or not np.all(np.isfinite(vals) & (vals > 0)):
+        raise ValueError(f"expected positive finite rho scales, got {text!r}")
+    return tuple(float(v) for v in vals)
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    """What a sweep is (everything that decides its rows; a resumed run must match it).
+
+    family : a registered step family (:data:`~ampc_jax.sweep.families.FAMILIES`).
+    cases : number of cases (case indices 0 .. cases-1 of the family under ``seed``).
+    rho : the rho scales (factors on eq.opt_ro's rho_j*, the same for every objective).
+    formulation : ``local_explicit`` (default), ``fully_distributed``, ``virtual_center``
+        or ``integrated``.
+    seed : the family's seed (default 0).
+    tol : eps_r = eps_s of eq.Convergence (squared norms; default: the example's
+        closed-loop tolerance, 1 Nm^2, for the vehicle families and 1e-6 otherwise).
+    relaxation, anderson, max_iter : the solver's over-relaxation (default 1), Anderson
+        memory (default 0) and iteration cap (default 500).
+    horizon : N_p of a vehicle or generated family (default: the family's own).
+    chunk : cases per chunk (default 256); the memory bound and the resume grain.
+    float32 : solve in float32 (default float64).
+    compaction : re-batch the pairs still running between segments (default True).
+    """
+
+    family: str
+    cases: int
+    rho: tuple[float, ...]
+    formulation: str = "local_explicit"
+    seed: int = 0
+    tol: float | None = None
+    relaxation: float = 1.0
+    anderson: int = 0
+    max_iter: int = 500
+    horizon: int | None = None
+    chunk: int = 256
+    float32: bool = False
+    compaction: bool = True
+
+    def __post_init__(self) -> None:
+        fam = family(self.family)
+        if fam.kind != "step":
+            raise ValueError(
+                f"family: {self.family!r} is a closed-loop family; a rho sweep needs a "
+                "single-step family"
+            )
+        for name in ("cases", "chunk", "max_iter"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+                raise ValueError(f"{name}: expected an integer >= 1, got {v!r}")
+        object.__setattr__(self, "rho", tuple(float(r) for r in self.rho))
+        if not self.rho or not all(np.isfinite(r) and r > 0 for r in self.rho):
+            raise ValueError(f"rho: expected positive finite scales, got {self.rho!r}")
+        if self.tol is not None and not (np.isfinite(self.tol) and self.tol >= 0):
+            raise ValueError(f"tol: expected a finite value >= 0, got {self.tol!r}")
+        if not 0.0 < float(self.relaxation) < 2.0:
+            raise ValueError(f"relaxation: expected a value in (0, 2), got {self.relaxation!r}")
+
+    @property
+    def dtype(self) -> Any:
+        return jnp.float32 if self.float32 else jnp.float64
+
+
+@dataclass
+class SweepSummary:
+    """What :func:`run_sweep` did: the table's path, the figures, timings and the work."""
+
+    out: Path
+    table: Path | None
+    figures: list[Path]
+    rows: int
+    wall_s: float
+    solve_s: float
+    reference_s: float
+    chunks_run: int
+    chunks_skipped: int
+    computed: int
+    needed: int
+    devices: int
+    processes: int
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def waste(self) -> float:
+        return Work(self.computed, self.needed).waste
+
+
+def git_commit() -> str:
+    """The short commit of the package's checkout (``unknown`` outside git)."""
+    try:
+        r = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=False,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return r.stdout.strip() or "unknown"
+
+
+def _solver(spec: SweepSpec, topology: Any) -> Any:
+    from ..formulations import formulation
+
+    return formulation(spec.formulation, topology, max_iter=spec.max_iter, anderson=spec.anderson)
+
+
+def _tol(spec: SweepSpec, cases: StepCases) -> float:
+    if spec.tol is not None:
+        return float(spec.tol)
+    return float(cases.config.tol_primal) if cases.config is not None else 1e-6
+
+
+def _reference_u0(topology: Any, data: Any) -> np.ndarray:
+    """First-step inputs of the integrated optimum per case (Clarabel; NaN where it fails)."""
+    from ..reference import solve_reference
+
+    host = jax.tree.map(lambda x: np.asarray(x, np.float64), data)
+    n = int(host.A.shape[0])
+    out = np.full((n, topology.n_u), np.nan)
+    for i in range(n):
+        res = solve_reference(topology, jax.tree.map(lambda x, i=i: x[i], host))
+        if int(res.status) in (0, 5):
+            out[i] = np.asarray(res.u)[0]
+    return out
+
+
+def _pad_cases(tree: Any, n: int) -> Any:
+    """Pad the leading axis to ``n`` with copies of the last case."""
+    have = int(np.shape(jax.tree.leaves(tree)[0])[0])
+    if have == n:
+        return tree
+    return jax.tree.map(
+        lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], n - have, axis=0)], axis=0), tree
+    )
+
+
+def _local_rows(arrays: Any) -> tuple[np.ndarray, Any]:
+    """The pair indices and values of the shards this process holds (all of them
+    with one process), in pair order."""
+    leaves, tree = jax.tree.flatten(arrays)
+    first = leaves[0]
+    if jax.process_count() == 1:
+        idx = np.arange(first.shape[0])
+        return idx, jax.tree.unflatten(tree, [np.asarray(x) for x in leaves])
+    starts = sorted(
+        {s.index[0].start or 0: s for s in first.addressable_shards}.items(), key=lambda kv: kv[0]
+    )
+    idx = np.concatenate([np.arange(k, k + s.data.shape[0]) for k, s in starts])
+
+    def local(x: Any) -> np.ndarray:
+        parts = {s.index[0].start or 0: np.asarray(s.data) for s in x.addressable_shards}
+        return np.concatenate([parts[k] for k in sorted(parts)])
+
+    return idx, jax.tree.unflatten(tree, [local(x) for x in leaves])
+
+
+def _chunk_path(out: Path, k: int) -> Path:
+    np_, pi = jax.process_count(), jax.process_index()
+    suffix = "" if np_ == 1 else f".p{pi}of{np_}"
+    return out / "chunks" / f"chunk_{k:05d}{suffix}.parquet"
+
+
+def _chunk_done(out: Path, k: int) -> bool:
+    np_ = jax.process_count()
+    if np_ == 1:
+        return (out / "chunks" / f"chunk_{k:05d}.parquet").exists()
+    return all((out / "chunks" / f"chunk_{k:05d}.p{p}of{np_}.parquet").exists() for p in range(np_))
+
+
+def _check_manifest(out: Path, spec: SweepSpec) -> None:
+    m = out / "sweep.json"
+    want = _spec_dict(spec)
+    if m.exists():
+        have = json.loads(m.read_text()).get("spec")
+        if have != want:
+            diff = sorted(k for k in set(want) | set(have or {}) if (have or {}).get(k) != want[k])
+            raise ValueError(
+                f"out: {out} holds a different sweep ({', '.join(diff)} differ); "
+                "choose another --out or remove it"
+            )
+
+
+def _spec_dict(spec: SweepSpec) -> dict[str, Any]:
+    d = asdict(spec)
+    d["rho"] = list(spec.rho)
+    return d
+
+
+def run_sweep(
+    spec: SweepSpec,
+    out: str | Path,
+    *,
+    progress: bool | None = None,
+    figures: bool = True,
+    devices: Any = None,
+) -> SweepSummary:
+    """Run (or resume) the sweep ``spec`` into the directory ``out``; see the module docstring.
+
+    ``progress``: a bar over the cases (cases/s, ETA) on process 0: None (default)
+    on a terminal only, True always, False never. ``figures``: draw them (default
+    True). ``devices``: the devices to shard over (default all, every process's).
+    """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    from tqdm.auto import tqdm
+
+    t_start = time.perf_counter()
+    out = Path(out)
+    lead = jax.process_index() == 0
+    _check_manifest(out, spec)
+    (out / "chunks").mkdir(parents=True, exist_ok=True)
+    fam = family(spec.family)
+    devs = list(jax.devices() if devices is None else devices)
+    n_dev = len(devs)
+    chunk = -(-spec.chunk // n_dev) * n_dev  # a multiple of the device count
+    P = len(spec.rho)
+    meta = {
+        "format": FORMAT,
+        "spec": _spec_dict(spec),
+        "commit": git_commit(),
+        "date": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "jax": jax.__version__,
+        "devices": n_dev,
+        "processes": jax.process_count(),
+        "platform": devs[0].platform,
+    }
+    if lead:
+        (out / "sweep.json").write_text(json.dumps(meta, indent=2) + "\n")
+    n_chunks = -(-spec.cases // chunk)
+    bar = tqdm(
+        total=spec.cases,
+        unit="case",
+        desc=f"sweep {spec.family}",
+        disable=True if (progress is False or not lead) else (None if progress is None else False),
+    )
+    solve_s = ref_s = 0.0
+    chunk_s: list[float] = []  # the first one compiles the program
+    run = skipped = 0
+    computed = needed = 0
+    topology_names: tuple[str, ...] = ()
+    for k in range(n_chunks):
+        start = k * chunk
+        n = min(chunk, spec.cases - start)
+        if _chunk_done(out, k):
+            skipped += 1
+            bar.update(n)
+            continue
+        cases = fam.sample(n, spec.seed, start, **_sample_options(spec, fam))
+        T = cases.topology
+        topology_names = T.objective_names
+        solver = _solver(spec, T)
+        tol = _tol(spec, cases)
+        n_rho = solver.n_rho
+        grid = solver.params(
+            rho=np.asarray(spec.rho)[:, None] * np.ones((1, n_rho)),
+            relaxation=spec.relaxation,
+            tol_primal=tol,
+            tol_dual=tol,
+            dtype=spec.dtype,
+        )
+        data = _pad_cases(cases.data, chunk)
+        pd_, pp = pair_data(data, P), pair_params(solver, grid, chunk)
+        t0 = time.perf_counter()
+        res, work = sweep_solve(solver, pd_, pp, devices=devs, compaction=spec.compaction)
+        idx, local = _local_rows(res)
+        _, wk = _local_rows(work)
+        chunk_s.append(time.perf_counter() - t0)
+        solve_s += chunk_s[-1]
+        keep = idx < n * P  # padding pairs dropped
+        idx = idx[keep]
+        local = jax.tree.map(lambda x, keep=keep: x[keep], local)
+        computed += int(np.sum(wk.computed))
+        needed += int(np.sum(local.iterations))
+        case_local = idx // P
+        point = idx % P
+        t0 = time.perf_counter()
+        mine = np.unique(case_local)
+        ref = np.full((n, T.n_u), np.nan)
+        ref[mine] = _reference_u0(T, jax.tree.map(lambda x, m=mine: np.asarray(x)[m], cases.data))
+        ref_s += time.perf_counter() - t0
+        e_sub = np.max(np.abs(np.asarray(local.u0, np.float64) - ref[case_local]), axis=1)
+        cols: dict[str, Any] = {
+            "case": cases.columns["case"][case_local],
+            "point": point.astype(np.int32),
+            "rho_scale": np.asarray(spec.rho)[point],
+            "iterations": np.asarray(local.iterations, np.int32),
+            "converged": np.asarray(local.converged, bool),
+            "status": np.asarray(local.status, np.int32),
+            "status_name": np.array([STATUS.get(int(s), "unknown") for s in local.status]),
+            "e_sub": e_sub,
+            "violation": np.asarray(local.violation, np.float64),
+            "primal_residual": np.asarray(local.primal, np.float64),
+            "dual_residual": np.asarray(local.dual, np.float64),
+        }
+        rho = np.asarray(local.rho, np.float64)
+        for j, name in enumerate(_rho_names(solver, T)):
+            cols[f"rho_{name}"] = rho[:, j]
+        for name, v in cases.columns.items():
+            if name != "case":
+                cols[name] = np.asarray(v)[case_local]
+        cols["family"] = np.full(len(idx), spec.family)
+        cols["formulation"] = np.full(len(idx), spec.formulation)
+        cols["seed"] = np.full(len(idx), spec.seed, np.int64)
+        cols["tol"] = np.full(len(idx), tol)
+        path = _chunk_path(out, k)
+        tmp = path.with_suffix(".tmp")
+        pq.write_table(pa.table(cols), tmp)
+        tmp.replace(path)  # a killed run leaves no half-written chunk behind
+        run += 1
+        bar.update(n)
+        bar.set_postfix(waste=f"{Work(computed, needed).waste:.2f}")
+    bar.close()
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices("ampc sweep: chunks written")
+    table = None
+    figs: list[Path] = []
+    rows = 0
+    if lead:
+        parts = sorted((out / "chunks").glob("chunk_*.parquet"))
+        tab = pa.concat_tables([pq.read_table(p) for p in parts])
+        tab = tab.sort_by([("case", "ascending"), ("point", "ascending")])
+        meta.update(
+            {
+                "objectives": list(topology_names),
+                "wall_s": time.perf_counter() - t_start,
+                "solve_s": solve_s,
+                "steady_pairs_per_s": _steady_rate(chunk_s, chunk * P),
+                "reference_s": ref_s,
+                "pair_iterations_computed": computed,
+                "pair_iterations_needed": needed,
+                "chunks_run": run,
+                "chunks_skipped": skipped,
+            }
+        )
+        tab = tab.replace_schema_metadata({"ampc": json.dumps(meta)})
+        table = out / "sweep.parquet"
+        pq.write_table(tab, table)
+        rows = tab.num_rows
+        (out / "sweep.json").write_text(json.dumps(meta, indent=2) + "\n")
+        if figures:
+            from .figures import sweep_figures
+
+            figs = sweep_figures(tab, out)
+    return SweepSummary(
+        out=out,
+        table=table,
+        figures=figs,
+        rows=rows,
+        wall_s=time.perf_counter() - t_start,
+        solve_s=solve_s,
+        reference_s=ref_s,
+        chunks_run=run,
+        chunks_skipped=skipped,
+        computed=computed,
+        needed=needed,
+        devices=n_dev,
+        processes=jax.process_count(),
+        extra={"steady_pairs_per_s": _steady_rate(chunk_s, chunk * P)},
+    )
+
+
+def _steady_rate(chunk_s: list[float], pairs: int) -> float | None:
+    """Pairs solved per second over the chunks after the first (which compiles),
+    padding pairs included; None with fewer than two chunks run."""
+    if len(chunk_s) < 2:
+        return None
+    return pairs * (len(chunk_s) - 1) / sum(chunk_s[1:])
+
+
+def _rho_names(solver: Any, topology: Any) -> tuple[str, ...]:
+    if solver.n_rho == topology.n_objectives:
+        return tuple(topology.objective_names)
+    return tuple(f"{k}" for k in range(solver.n_rho))
+
+
+def _sample_options(spec: SweepSpec, fam: Any) -> dict[str, Any]:
+    kw: dict[str, Any] = {}
+    if "dtype" in fam.options:
+        kw["dtype"] = spec.dtype
+    if spec.horizon is not None:
+        if "horizon" not in fam.options:
+            raise ValueError(f"horizon: family {spec.family!r} has no horizon option")
+        kw["horizon"] = int(spec.horizon)
+    return kw
