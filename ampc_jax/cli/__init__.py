@@ -1,5 +1,5 @@
 """The ``ampc`` command line: ``solve``, ``simulate``, ``demo``, ``run``, ``plant``,
-``export``, ``replay``, ``sweep``.
+``export``, ``replay``, ``sweep``, ``tune``.
 
 Errors go to stderr as ``ampc: error: --flag: message`` with exit code 2 (bad
 input); library warnings as ``ampc: warning: ...`` lines. Nothing in the
@@ -16,6 +16,7 @@ from .runtime import add_runtime_commands
 from .simulate import add_simulate_commands
 from .solve import add_solve_command
 from .sweep import add_sweep_command
+from .tune import add_tune_command
 
 __all__ = ["build_parser", "main"]
 
@@ -31,6 +32,7 @@ def build_parser() -> Parser:
     add_simulate_commands(sub)
     add_runtime_commands(sub)
     add_sweep_command(sub)
+    add_tune_command(sub)
     return parser
 
 

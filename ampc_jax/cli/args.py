@@ -20,6 +20,7 @@ from typing import Any, NoReturn
 import numpy as np
 
 __all__ = [
+    "PARAMS_HELP",
     "Parser",
     "arg_type",
     "at_least_one",
@@ -29,6 +30,7 @@ __all__ = [
     "over_relaxation",
     "positive_finite",
     "progress_disabled",
+    "with_params_file",
     "warnings_as_lines",
 ]
 
@@ -129,3 +131,25 @@ def warnings_as_lines() -> Iterator[None]:
         if text not in seen:
             seen.add(text)
             print(f"ampc: warning: {text}", file=sys.stderr)
+
+
+def with_params_file(config: Any, path: str | None, keep: tuple[str, ...] = ()) -> Any:
+    """``config`` with a tuned-parameters file's numbers applied (``--params``; none:
+    ``config`` itself); ``keep``: the options given by explicit flags, which win.
+    ValueError ``--params PATH: field: message`` on a bad file."""
+    if path is None:
+        return config
+    from ..tuning.params_file import apply_params, read_params
+
+    try:
+        return apply_params(config, read_params(path), keep=keep)
+    except ValueError as exc:
+        raise ValueError(f"--params {path}: {exc}") from None
+
+
+PARAMS_HELP = (
+    "a tuned-parameters file (ampc tune's params.json): its solver.rho_scale, "
+    "solver.relaxation and settings are applied first, then the explicit flags, which "
+    "win over it (default: none)"
+)
+"""The help of ``--params`` for the closed-loop commands."""

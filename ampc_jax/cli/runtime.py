@@ -20,7 +20,15 @@ from typing import Any
 
 import numpy as np
 
-from .args import arg_type, fail, flag_error, output_dir, positive_finite
+from .args import (
+    PARAMS_HELP,
+    arg_type,
+    fail,
+    flag_error,
+    output_dir,
+    positive_finite,
+    with_params_file,
+)
 
 __all__ = ["add_runtime_commands"]
 
@@ -63,7 +71,9 @@ def _config(args: argparse.Namespace) -> Any:
     kw: dict[str, Any] = {"shadow": False}
     if args.formulation is not None:
         kw["formulation"] = args.formulation
-    return config_for(SCENARIOS[args.scenario], **kw)
+    return with_params_file(
+        config_for(SCENARIOS[args.scenario], **kw), getattr(args, "params", None)
+    )
 
 
 def _faults(texts: list[str] | None, kinds: tuple[str, ...]) -> tuple[Any, ...]:
@@ -417,6 +427,7 @@ def add_runtime_commands(sub: Any) -> None:
         help="run an `ampc export` artefact (default: compile in process)",
     )
     r.add_argument("--float32", action="store_true", help="float32 step (default: float64)")
+    r.add_argument("--params", metavar="FILE", default=None, help=PARAMS_HELP)
     r.add_argument(
         "--with-plant",
         action="store_true",
@@ -519,6 +530,7 @@ def add_runtime_commands(sub: Any) -> None:
     )
     e.add_argument("--formulation", choices=forms, default=None, help="(default: local_explicit)")
     e.add_argument("--float32", action="store_true", help="float32 step (default: float64)")
+    e.add_argument("--params", metavar="FILE", default=None, help=PARAMS_HELP)
     e.add_argument("--out", required=True, help="the artefact file to write (required)")
     e.set_defaults(func=cmd_export)
 

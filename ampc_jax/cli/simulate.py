@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from .args import (
+    PARAMS_HELP,
     arg_type,
     at_least_one,
     fail,
@@ -26,6 +27,7 @@ from .args import (
     over_relaxation,
     positive_finite,
     progress_disabled,
+    with_params_file,
 )
 
 __all__ = ["add_simulate_commands", "cmd_demo", "cmd_simulate"]
@@ -184,6 +186,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             anderson=args.anderson,
             actuators=args.actuators,
         )
+        given = tuple(
+            k
+            for k, v in (("rho_scale", args.rho_scale), ("relaxation", args.relaxation))
+            if v is not None
+        )
+        cfg = with_params_file(cfg, args.params, keep=given)
         if args.set:
             cfg = with_settings(cfg, **_parse_settings(args.set, cfg.settings))
         base_cfg = baseline_config(cfg) if args.compare else None
@@ -389,6 +397,7 @@ def add_simulate_commands(sub: Any) -> None:
         help="factor on the integrated MPC's optimal rho (controller and r_time replay) "
         "(default: the example's tuned value, 0.3 for cruise, 1.2 for stability)",
     )
+    p.add_argument("--params", metavar="FILE", default=None, help=PARAMS_HELP)
     p.add_argument(
         "--set",
         action="append",

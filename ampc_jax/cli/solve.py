@@ -115,6 +115,22 @@ def _warm_state(path: str, solver: Any, dt: Any) -> Any:
     return solver.shift(state)
 
 
+def _params_file(path: str | None) -> tuple[tuple[float, ...] | None, float | None]:
+    """(rho scales, relaxation) of a tuned-parameters file (``--params``), or Nones.
+    Its ``settings`` (an example's weights) do not apply to a problem file."""
+    if path is None:
+        return None, None
+    from ..tuning.params_file import read_params
+
+    try:
+        tuned = read_params(path)
+    except ValueError as exc:
+        raise ValueError(f"--params {path}: {exc}") from None
+    rs = tuned.rho_scale
+    scales = None if rs is None else (tuple(rs) if isinstance(rs, tuple) else (float(rs),))
+    return scales, tuned.relaxation
+
+
 def _timed(fn: Any, *args: Any, repeats: int = 7) -> tuple[Any, float]:
     """Run a compiled function once to warm up, then return its result and median time."""
     import jax
@@ -178,8 +194,18 @@ def cmd_solve(args: argparse.Namespace) -> int:
     for cause, flags in _ignored(args):
         print(f"ampc: {', '.join(flags)} ignored by {cause}", file=sys.stderr)
     max_iter = MAX_ITER_DEFAULT if args.max_iter is None else args.max_iter
-    scales = (1.0,) if args.rho_scale is None else args.rho_scale
-    relaxation = 1.0 if args.relaxation is None else args.relaxation
+    try:
+        file_scales, file_relaxation = _params_file(args.params)
+    except ValueError as exc:
+        return fail(str(exc))
+    scales = (
+        (file_scales or (1.0,)) if args.rho_scale is None else args.rho_scale
+    )  # the explicit flag wins over the file
+    relaxation = (
+        (1.0 if file_relaxation is None else file_relaxation)
+        if args.relaxation is None
+        else args.relaxation
+    )
     anderson = 0 if args.anderson is None else args.anderson
     try:
         with warnings_as_lines():
@@ -449,6 +475,14 @@ def add_solve_command(sub: Any) -> None:
         type=arg_type(over_relaxation),
         default=None,
         help="ADMM over-relaxation alpha in (0, 2); 1 is the paper's iteration (default: 1)",
+    )
+    p.add_argument(
+        "--params",
+        metavar="FILE",
+        default=None,
+        help="a tuned-parameters file (ampc tune's params.json): its solver.rho_scale and "
+        "solver.relaxation are used; --rho-scale and --relaxation given here win over it "
+        "(default: none)",
     )
     p.add_argument(
         "--anderson",

@@ -26,7 +26,7 @@ def _quantile_lines(table: Any) -> list[str]:
     import numpy as np
 
     rho = table.column("rho_scale").to_numpy()
-    it = table.column("iterations").to_numpy()
+    it = table.column("iterations").to_numpy().astype(float)
     conv = table.column("converged").to_numpy()
     e = table.column("e_sub").to_numpy()
     lines = [
@@ -38,7 +38,7 @@ def _quantile_lines(table: Any) -> list[str]:
         worst = f"{np.nanmax(ee):10.2e}" if ee.size and np.isfinite(ee).any() else f"{'-':>10}"
         lines.append(
             f"{s:10.4g} {np.median(it[m]):7.0f} {np.percentile(it[m], 95):7.0f} "
-            f"{it[m].max():6d} {100 * conv[m].mean():7.1f} {worst}"
+            f"{it[m].max():6.0f} {100 * conv[m].mean():7.1f} {worst}"
         )
     return lines
 
@@ -87,6 +87,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             chunk=args.chunk,
             float32=args.float32,
             compaction=not args.no_compaction,
+            duration=args.duration,
         )
         summary = run_sweep(
             spec, args.out, progress=False if args.quiet else None, figures=not args.no_figures
@@ -106,7 +107,12 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         f"on {summary.devices} device(s), {summary.processes} process(es); "
         f"{summary.chunks_run} chunk(s) run, {summary.chunks_skipped} skipped"
     )
-    if summary.chunks_run:
+    if summary.chunks_run and not summary.computed:  # closed loops
+        print(
+            f"  {summary.solve_s:.1f} s for {summary.rows} closed loops "
+            f"({summary.rows / summary.solve_s:.2f} loops/s, compile included)"
+        )
+    elif summary.chunks_run:
         steady = summary.extra.get("steady_pairs_per_s")
         rate = (
             f"{steady:,.0f} case-point solves/s after the first chunk"
@@ -143,7 +149,10 @@ def add_sweep_command(sub: Any) -> None:
     p.add_argument(
         "--family",
         required=True,
-        help="scenario family: cruise_step, stability_step or generated (required)",
+        help=(
+            "scenario family: cruise_step, stability_step, generated (single steps) or "
+            "cruise_lane_change (closed loops) (required)"
+        ),
     )
     p.add_argument(
         "--cases",
@@ -195,6 +204,12 @@ def add_sweep_command(sub: Any) -> None:
         type=arg_type(at_least_one, int),
         default=256,
         help="cases per chunk: the memory bound and the resume grain (default: 256)",
+    )
+    p.add_argument(
+        "--duration",
+        type=arg_type(positive_finite),
+        default=None,
+        help="seconds of each closed-loop run of a loop family (default: the scenario's)",
     )
     p.add_argument("--float32", action="store_true", help="solve in float32 (default: float64)")
     p.add_argument(

@@ -84,6 +84,11 @@ class SweepSpec:
     chunk : cases per chunk (default 256); the memory bound and the resume grain.
     float32 : solve in float32 (default float64).
     compaction : re-batch the pairs still running between segments (default True).
+    duration : simulated seconds of a closed-loop family's runs (default: the scenario's).
+
+    A closed-loop family (``kind="loop"``) gives one row per (manoeuvre, point)
+    with the run's reductions (:class:`~ampc_jax.sweep.loops.LoopRow`); its
+    ``iterations`` column is the mean per control step.
     """
 
     family: str
@@ -99,14 +104,21 @@ class SweepSpec:
     chunk: int = 256
     float32: bool = False
     compaction: bool = True
+    duration: float | None = None
 
     def __post_init__(self) -> None:
         fam = family(self.family)
-        if fam.kind != "step":
+        if fam.kind == "loop" and self.formulation not in (
+            "local_explicit",
+            "fully_distributed",
+            "virtual_center",
+        ):
             raise ValueError(
-                f"family: {self.family!r} is a closed-loop family; a rho sweep needs a "
-                "single-step family"
+                f"formulation: a closed-loop family runs local_explicit, fully_distributed "
+                f"or virtual_center, got {self.formulation!r}"
             )
+        if fam.kind == "step" and self.duration is not None:
+            raise ValueError(f"duration: family {self.family!r} is of single steps")
         for name in ("cases", "chunk", "max_iter"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
@@ -274,6 +286,8 @@ def run_sweep(
     out = Path(out)
     lead = jax.process_index() == 0
     _check_manifest(out, spec)
+    if family(spec.family).kind == "loop" and jax.process_count() > 1:
+        raise ValueError("family: closed-loop sweeps run in one process (its devices sharded)")
     (out / "chunks").mkdir(parents=True, exist_ok=True)
     fam = family(spec.family)
     devs = list(jax.devices() if devices is None else devices)
@@ -312,62 +326,18 @@ def run_sweep(
             bar.update(n)
             continue
         cases = fam.sample(n, spec.seed, start, **_sample_options(spec, fam))
-        T = cases.topology
-        topology_names = T.objective_names
-        solver = _solver(spec, T)
-        tol = _tol(spec, cases)
-        n_rho = solver.n_rho
-        grid = solver.params(
-            rho=np.asarray(spec.rho)[:, None] * np.ones((1, n_rho)),
-            relaxation=spec.relaxation,
-            tol_primal=tol,
-            tol_dual=tol,
-            dtype=spec.dtype,
-        )
-        data = _pad_cases(cases.data, chunk)
-        pd_, pp = pair_data(data, P), pair_params(solver, grid, chunk)
         t0 = time.perf_counter()
-        res, work = sweep_solve(solver, pd_, pp, devices=devs, compaction=spec.compaction)
-        idx, local = _local_rows(res)
-        _, wk = _local_rows(work)
-        chunk_s.append(time.perf_counter() - t0)
+        if fam.kind == "step":
+            cols, names, work, ref_t = _step_rows(spec, cases, n, chunk, devs)
+            computed += work[0]
+            needed += work[1]
+            ref_s += ref_t
+        else:
+            cols, names = _loop_rows(spec, cases, n, chunk)
+            ref_t = 0.0
+        chunk_s.append(time.perf_counter() - t0 - ref_t)
         solve_s += chunk_s[-1]
-        keep = idx < n * P  # padding pairs dropped
-        idx = idx[keep]
-        local = jax.tree.map(lambda x, keep=keep: x[keep], local)
-        computed += int(np.sum(wk.computed))
-        needed += int(np.sum(local.iterations))
-        case_local = idx // P
-        point = idx % P
-        t0 = time.perf_counter()
-        mine = np.unique(case_local)
-        ref = np.full((n, T.n_u), np.nan)
-        ref[mine] = _reference_u0(T, jax.tree.map(lambda x, m=mine: np.asarray(x)[m], cases.data))
-        ref_s += time.perf_counter() - t0
-        e_sub = np.max(np.abs(np.asarray(local.u0, np.float64) - ref[case_local]), axis=1)
-        cols: dict[str, Any] = {
-            "case": cases.columns["case"][case_local],
-            "point": point.astype(np.int32),
-            "rho_scale": np.asarray(spec.rho)[point],
-            "iterations": np.asarray(local.iterations, np.int32),
-            "converged": np.asarray(local.converged, bool),
-            "status": np.asarray(local.status, np.int32),
-            "status_name": np.array([STATUS.get(int(s), "unknown") for s in local.status]),
-            "e_sub": e_sub,
-            "violation": np.asarray(local.violation, np.float64),
-            "primal_residual": np.asarray(local.primal, np.float64),
-            "dual_residual": np.asarray(local.dual, np.float64),
-        }
-        rho = np.asarray(local.rho, np.float64)
-        for j, name in enumerate(_rho_names(solver, T)):
-            cols[f"rho_{name}"] = rho[:, j]
-        for name, v in cases.columns.items():
-            if name != "case":
-                cols[name] = np.asarray(v)[case_local]
-        cols["family"] = np.full(len(idx), spec.family)
-        cols["formulation"] = np.full(len(idx), spec.formulation)
-        cols["seed"] = np.full(len(idx), spec.seed, np.int64)
-        cols["tol"] = np.full(len(idx), tol)
+        topology_names = names
         path = _chunk_path(out, k)
         tmp = path.with_suffix(".tmp")
         pq.write_table(pa.table(cols), tmp)
@@ -425,6 +395,118 @@ def run_sweep(
         processes=jax.process_count(),
         extra={"steady_pairs_per_s": _steady_rate(chunk_s, chunk * P)},
     )
+
+
+def _step_rows(
+    spec: SweepSpec, cases: StepCases, n: int, chunk: int, devs: list
+) -> tuple[dict[str, Any], tuple[str, ...], tuple[int, int], float]:
+    """Rows of a chunk of single-step cases: solve every pair, the reference per case."""
+    P = len(spec.rho)
+    T = cases.topology
+    solver = _solver(spec, T)
+    tol = _tol(spec, cases)
+    grid = solver.params(
+        rho=np.asarray(spec.rho)[:, None] * np.ones((1, solver.n_rho)),
+        relaxation=spec.relaxation,
+        tol_primal=tol,
+        tol_dual=tol,
+        dtype=spec.dtype,
+    )
+    data = _pad_cases(cases.data, chunk)
+    pd_, pp = pair_data(data, P), pair_params(solver, grid, chunk)
+    res, work = sweep_solve(solver, pd_, pp, devices=devs, compaction=spec.compaction)
+    idx, local = _local_rows(res)
+    _, wk = _local_rows(work)
+    keep = idx < n * P  # padding pairs dropped
+    idx = idx[keep]
+    local = jax.tree.map(lambda x: x[keep], local)
+    work_done = (int(np.sum(wk.computed)), int(np.sum(local.iterations)))
+    case_local = idx // P
+    point = idx % P
+    t0 = time.perf_counter()
+    mine = np.unique(case_local)
+    ref = np.full((n, T.n_u), np.nan)
+    ref[mine] = _reference_u0(T, jax.tree.map(lambda x: np.asarray(x)[mine], cases.data))
+    ref_t = time.perf_counter() - t0
+    e_sub = np.max(np.abs(np.asarray(local.u0, np.float64) - ref[case_local]), axis=1)
+    cols: dict[str, Any] = {
+        "case": cases.columns["case"][case_local],
+        "point": point.astype(np.int32),
+        "rho_scale": np.asarray(spec.rho)[point],
+        "iterations": np.asarray(local.iterations, np.int32),
+        "converged": np.asarray(local.converged, bool),
+        "status": np.asarray(local.status, np.int32),
+        "status_name": np.array([STATUS.get(int(s), "unknown") for s in local.status]),
+        "e_sub": e_sub,
+        "violation": np.asarray(local.violation, np.float64),
+        "primal_residual": np.asarray(local.primal, np.float64),
+        "dual_residual": np.asarray(local.dual, np.float64),
+    }
+    rho = np.asarray(local.rho, np.float64)
+    for j, name in enumerate(_rho_names(solver, T)):
+        cols[f"rho_{name}"] = rho[:, j]
+    _case_columns(cols, cases.columns, case_local, spec, tol)
+    return cols, tuple(T.objective_names), work_done, ref_t
+
+
+def _case_columns(
+    cols: dict[str, Any],
+    drawn: dict[str, np.ndarray],
+    case_local: np.ndarray,
+    spec: Any,
+    tol: float,
+) -> None:
+    """The cases' drawn operating point and the run's settings as columns (tidy rows)."""
+    for name, v in drawn.items():
+        if name != "case":
+            cols[name] = np.asarray(v)[case_local]
+    m = len(case_local)
+    cols["family"] = np.full(m, spec.family)
+    cols["formulation"] = np.full(m, spec.formulation)
+    cols["seed"] = np.full(m, spec.seed, np.int64)
+    cols["tol"] = np.full(m, tol)
+
+
+def _loop_rows(
+    spec: SweepSpec, cases: Any, n: int, chunk: int
+) -> tuple[dict[str, Any], tuple[str, ...]]:
+    """Rows of a chunk of closed-loop cases (:func:`~ampc_jax.sweep.loops.loop_pairs`)."""
+    from dataclasses import replace
+
+    from ..closed_loop.config import check_duration
+    from ..vehicle.params import CONTROL_DT
+    from .loops import loop_pairs
+
+    P = len(spec.rho)
+    tol = spec.tol
+    cfg = replace(
+        cases.config,
+        formulation=spec.formulation,
+        relaxation=spec.relaxation,
+        anderson=spec.anderson,
+        max_iter=spec.max_iter,
+        **({} if tol is None else {"tol_primal": tol, "tol_dual": tol}),
+    )
+    n_steps = cases.n_steps
+    if spec.duration is not None:
+        n_steps = int(round(check_duration(spec.duration) / CONTROL_DT))
+    sc = _pad_cases(jax.tree.map(jnp.asarray, cases.scenarios), chunk)
+    rows = loop_pairs(cfg, sc, np.asarray(spec.rho), n_steps, dtype=spec.dtype)
+    rows = jax.tree.map(lambda x: np.asarray(x)[: n * P], rows)
+    idx = np.arange(n * P)
+    case_local, point = idx // P, idx % P
+    cols: dict[str, Any] = {
+        "case": cases.columns["case"][case_local],
+        "point": point.astype(np.int32),
+        "rho_scale": np.asarray(spec.rho)[point],
+    }
+    for name, v in rows._asdict().items():
+        cols[name] = np.asarray(v)
+    cols["iterations"] = cols["iterations"].astype(np.float64)
+    cols["e_sub"] = cols.pop("e_sub_max")
+    cols["n_steps"] = np.full(len(idx), n_steps, np.int32)
+    _case_columns(cols, cases.columns, case_local, spec, float(cfg.tol_primal))
+    return cols, tuple(cfg.enabled)
 
 
 def _steady_rate(chunk_s: list[float], pairs: int) -> float | None:

@@ -15,7 +15,7 @@ def test_cases_depend_on_seed_and_index_only(name):
     a = family(name).sample(12, seed=5)
     b = family(name).sample(4, seed=5, start=8)
     c = family(name).sample(4, seed=6, start=8)
-    for x, y, z in zip(jax.tree.leaves(a.data), jax.tree.leaves(b.data), jax.tree.leaves(c.data)):
+    for x, y in zip(jax.tree.leaves(a.data), jax.tree.leaves(b.data), strict=True):
         np.testing.assert_array_equal(np.asarray(x)[8:], y)
     assert not np.allclose(np.asarray(a.data.x0)[8:], c.data.x0)
     np.testing.assert_array_equal(b.columns["case"], [8, 9, 10, 11])

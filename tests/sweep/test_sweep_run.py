@@ -70,13 +70,14 @@ def test_table_resume_and_refusal(tmp_path, capsys):
     assert "--out" in capsys.readouterr().err
 
 
-def test_bad_flags(capsys):
-    assert main(["sweep", "--family", "nope", "--out", "/tmp/x"]) == 2
+def test_bad_flags(capsys, tmp_path):
+    assert main(["sweep", "--family", "nope", "--out", str(tmp_path)]) == 2
     assert "--family" in capsys.readouterr().err
-    assert main(["sweep", "--family", "generated", "--rho", "1:0:3", "--out", "/tmp/x"]) == 2
+    assert main(["sweep", "--family", "generated", "--rho", "1:0:3", "--out", str(tmp_path)]) == 2
     assert "--rho" in capsys.readouterr().err
-    assert main(["sweep", "--family", "cruise_lane_change", "--out", "/tmp/x"]) == 2
-    assert "--family" in capsys.readouterr().err
+    args = ["sweep", "--family", "generated", "--duration", "1", "--out", str(tmp_path)]
+    assert main(args) == 2
+    assert "--duration" in capsys.readouterr().err
 
 
 PARTITION = textwrap.dedent(
@@ -131,7 +132,7 @@ def test_four_devices_and_two_processes_give_the_same_table(tmp_path, capsys):
         for k in range(2)
     ]
     outs = [p.communicate(timeout=240) for p in procs]
-    for p, (o, e) in zip(procs, outs):
+    for p, (_, e) in zip(procs, outs, strict=True):
         assert p.returncode == 0, e[-3000:]
     assert "on 4 device(s), 2 process(es)" in outs[0][0]
     # each process wrote the rows its own devices hold: complementary halves
@@ -144,3 +145,18 @@ def test_four_devices_and_two_processes_give_the_same_table(tmp_path, capsys):
     # vectorised code) the same integers and floats to round-off
     _same_rows(_table(four), _table(two), exact=True)
     _same_rows(_table(one), _table(four), exact=False)
+
+
+def test_closed_loop_family(tmp_path, capsys):
+    out = tmp_path / "loops"
+    args = ["sweep", "--family", "cruise_lane_change", "--cases", "2", "--rho", "0.5,2"]
+    assert main([*args, "--duration", "0.5", "--quiet", "--no-figures", "--out", str(out)]) == 0
+    assert "4 closed loops" in capsys.readouterr().out
+    tab = _table(out)
+    assert tab.num_rows == 4
+    assert set(tab.column("n_steps").to_pylist()) == {10}
+    for col in ("iterations", "iterations_max", "e_sub", "yaw_rms", "slip_max", "torque_max"):
+        assert np.all(np.isfinite(tab.column(col).to_numpy())), col
+    # the drawn friction of each case is in its rows
+    mu = tab.column("mu").to_numpy()
+    assert mu[0] == mu[1] and mu[2] == mu[3] and mu[0] != mu[2]

@@ -1,0 +1,284 @@
+"""``ampc tune``: gradient tuning of the solver's speed (or the closed loop's weights).
+
+Writes ``DIR/params.json`` (the tuned-parameters file, ``ampc-params/1``, for
+``--params`` of ``simulate``, ``solve``, ``run`` and ``export``), ``DIR/loss.png``
+(the loss curve) and ``DIR/tune.json`` (the loss history and the held-out
+evaluation), and prints the evaluation table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from .args import arg_type, at_least_one, fail, flag_error, output_dir, positive_finite
+
+__all__ = ["add_tune_command", "cmd_tune"]
+
+_FLAGS = {
+    "family": "--family",
+    "cases": "--cases",
+    "steps": "--steps",
+    "iterations": "--iterations",
+    "lr": "--lr",
+    "seed": "--seed",
+    "heldout_seed": "--heldout-seed",
+    "loss": "--loss",
+    "anderson": "--anderson",
+}
+
+
+def _loss_figure(history: list[dict[str, Any]], path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    loss = [h["loss"] for h in history]
+    ax.plot(range(len(loss)), loss)
+    if min(loss) > 0:
+        ax.set_yscale("log")
+    ax.set_xlabel("Adam step")
+    ax.set_ylabel("loss")
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _solver(args: argparse.Namespace, out: Path) -> int:
+    from ..tuning.params_file import write_params
+    from ..tuning.solver import evaluation_table, tune_solver
+
+    try:
+        res = tune_solver(
+            args.family,
+            cases=args.cases,
+            steps=args.steps,
+            iterations=args.iterations,
+            lr=args.lr,
+            seed=args.seed,
+            heldout_seed=args.heldout_seed,
+            heldout_cases=args.heldout_cases,
+            heldout_horizon=args.heldout_horizon,
+            horizon=args.horizon,
+            anderson=args.anderson,
+            loss=args.loss,
+            tol=args.tol,
+            progress=None if not args.quiet else False,
+        )
+    except ValueError as exc:
+        return fail(flag_error(exc, _FLAGS))
+    st = res.settings
+    write_params(
+        out / "params.json",
+        example=st["example"],
+        rho_scale=res.rho_scale,
+        relaxation=res.relaxation,
+        provenance={"command": "ampc tune", "objective": "solver", **st},
+    )
+    (out / "tune.json").write_text(
+        json.dumps(
+            {
+                "objective": "solver",
+                "settings": st,
+                "rho_scale": list(res.rho_scale),
+                "relaxation": res.relaxation,
+                "history": res.history,
+                "evaluation": res.evaluation,
+            },
+            indent=2,
+        )
+        + "\n"
+    )
+    _loss_figure(res.history, out / "loss.png", f"{args.family}: K = {args.iterations}")
+    rs = ", ".join(f"{x:.4g}" for x in res.rho_scale)
+    print(
+        f"tuned rho scale ({', '.join(st['objectives'])}) = {rs}; relaxation {res.relaxation:.4g}"
+    )
+    print(evaluation_table(res.evaluation))
+    for name in ("params.json", "tune.json", "loss.png"):
+        print(f"wrote {out / name}")
+    return 0
+
+
+def _weights(args: argparse.Namespace, out: Path) -> int:
+    from ..sweep.families import family
+    from ..tuning.params_file import write_params
+
+    try:
+        from ..tuning.weights import tune_weights
+    except ImportError as exc:
+        return fail(f"--objective weights: the weight tuner is not available ({exc})")
+    try:
+        fam = family(args.family)
+        if fam.kind != "loop":
+            raise ValueError(
+                f"family: --objective weights needs a loop family (cruise_lane_change), "
+                f"got {fam.name!r} ({fam.kind})"
+            )
+        cases = fam.sample(args.cases, seed=args.seed)
+        res = tune_weights(
+            cases.config,
+            cases,
+            steps=args.steps,
+            iterations=args.iterations,
+            lr=args.lr,
+            progress=not args.quiet,
+        )
+    except ValueError as exc:
+        return fail(flag_error(exc, _FLAGS))
+    cfg = cases.config
+    st = {
+        "family": args.family,
+        "cases": args.cases,
+        "steps": args.steps,
+        "iterations": args.iterations,
+        "lr": args.lr,
+        "seed": args.seed,
+    }
+    write_params(
+        out / "params.json",
+        example=cfg.example,
+        formulation=cfg.formulation,
+        settings=res.settings,
+        provenance={"command": "ampc tune", "objective": "weights", **st},
+    )
+    doc = {
+        "objective": "weights",
+        "settings": st,
+        "weights": res.settings,
+        "history": res.history,
+        "evaluation": res.evaluation,
+    }
+    (out / "tune.json").write_text(json.dumps(doc, indent=2, default=_plain) + "\n")
+    _loss_figure(res.history, out / "loss.png", f"{args.family}: weights")
+    print("tuned weights: " + ", ".join(f"{k}={v:.4g}" for k, v in res.settings.items()))
+    print(json.dumps(res.evaluation, indent=2, default=_plain))
+    for name in ("params.json", "tune.json", "loss.png"):
+        print(f"wrote {out / name}")
+    return 0
+
+
+def _plain(value: Any) -> Any:
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    return str(value)
+
+
+def cmd_tune(args: argparse.Namespace) -> int:
+    """``ampc tune``: exit 0 with the files written, 2 on bad input."""
+    if args.family is None:
+        args.family = "cruise_lane_change" if args.objective == "weights" else "cruise_step"
+    problem = output_dir(args.out)
+    if problem:
+        return fail(problem)
+    out = Path(args.out)
+    if not args.float32:
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+    return _solver(args, out) if args.objective == "solver" else _weights(args, out)
+
+
+def add_tune_command(sub: Any) -> None:
+    """Register ``ampc tune`` on the ``ampc`` sub-parsers."""
+    p = sub.add_parser(
+        "tune",
+        help="gradient tuning of the solver's rho scales and relaxation (or the weights)",
+        description="Tune Local Explicit's rho scales (one per objective) and "
+        "over-relaxation with Adam through K unrolled ADMM iterations from a cold start, "
+        "so that they land closest to the integrated optimum (Clarabel) on a training "
+        "batch of a step family; then compare iterations to tolerance on held-out cases "
+        "with eq.opt_ro's defaults and the best point of a rho-scale grid. "
+        "--objective weights tunes the closed loop's weights instead.",
+    )
+    p.add_argument(
+        "--family",
+        default=None,
+        help="the scenario family: a step family (cruise_step, stability_step, generated) "
+        "for --objective solver, a loop family (cruise_lane_change) for weights "
+        "(default: cruise_step, or cruise_lane_change with --objective weights)",
+    )
+    p.add_argument(
+        "--objective",
+        choices=("solver", "weights"),
+        default="solver",
+        help="what to tune: the solver's speed or the closed loop's weights (default: solver)",
+    )
+    p.add_argument(
+        "--cases",
+        type=arg_type(at_least_one, int),
+        default=32,
+        help="training cases (default: 32)",
+    )
+    p.add_argument(
+        "--steps", type=arg_type(at_least_one, int), default=100, help="Adam steps (default: 100)"
+    )
+    p.add_argument(
+        "--iterations",
+        type=arg_type(at_least_one, int),
+        default=10,
+        help="K, the unrolled ADMM iterations of the loss (per control step with "
+        "--objective weights) (default: 10)",
+    )
+    p.add_argument(
+        "--lr",
+        type=arg_type(positive_finite),
+        default=0.1,
+        help="Adam's learning rate (default: 0.1)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="the training cases' seed (default: 0)")
+    p.add_argument(
+        "--heldout-seed", type=int, default=1, help="the held-out cases' seed (default: 1)"
+    )
+    p.add_argument(
+        "--heldout-cases",
+        type=arg_type(at_least_one, int),
+        default=64,
+        help="held-out cases of the evaluation (default: 64)",
+    )
+    p.add_argument(
+        "--horizon",
+        type=arg_type(at_least_one, int),
+        default=None,
+        help="the step family's horizon N_p (default: the example's)",
+    )
+    p.add_argument(
+        "--heldout-horizon",
+        type=arg_type(at_least_one, int),
+        default=None,
+        help="also evaluate on held-out cases at this horizon (default: none)",
+    )
+    p.add_argument(
+        "--loss",
+        choices=("error", "log", "residual"),
+        default="error",
+        help="error: mean normalised error ||U_K - U*||^2 / (||U*||^2 + N_p n_u); log: its "
+        "geometric mean; residual: the smooth fraction of the K iterations above the "
+        "tolerance (default: error)",
+    )
+    p.add_argument(
+        "--anderson",
+        type=int,
+        choices=(0, 1, 2, 3),
+        default=0,
+        help="Anderson memory of the solver tuned and evaluated (default: 0, plain ADMM)",
+    )
+    p.add_argument(
+        "--tol",
+        type=arg_type(positive_finite),
+        default=1.0,
+        help="eps_r = eps_s of the held-out evaluation, squared, in the rows' units "
+        "(default: 1, the vehicle examples' closed-loop tolerance in Nm^2)",
+    )
+    p.add_argument(
+        "--float32", action="store_true", help="tune and evaluate in float32 (default: float64)"
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bar (default: shown)")
+    p.add_argument("--out", required=True, help="output directory (required)")
+    p.set_defaults(func=cmd_tune)

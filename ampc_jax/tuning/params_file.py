@@ -1,0 +1,276 @@
+"""The tuned-parameters file: solver numbers and example settings, as JSON.
+
+Format ``ampc-params/1``::
+
+    {
+      "format": "ampc-params/1",
+      "example": "cruise" | null,
+      "formulation": "local_explicit",
+      "solver": {"rho_scale": [f_1, ..., f_J] | f | null, "relaxation": alpha | null},
+      "settings": {"q_yrt": 1.0, ...},          (optional: the example's weights)
+      "provenance": {...}                       (optional: how it was made)
+    }
+
+``rho_scale`` is the factor on eq.opt_ro's rho_j* per objective (one number for
+every objective, or one per objective of the example in its order);
+``relaxation`` is the over-relaxation alpha in (0, 2). A ``null`` (or missing)
+entry leaves the default in place. ``settings`` replaces fields of the
+example's settings (weights and bounds, by name). ``ampc simulate``, ``ampc
+solve``, ``ampc run`` and ``ampc export`` read it with ``--params FILE``.
+Every field is validated on reading (ValueError naming the field).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, NamedTuple
+
+__all__ = [
+    "PARAMS_FORMAT",
+    "TunedParams",
+    "apply_params",
+    "read_params",
+    "validate_params",
+    "write_params",
+]
+
+PARAMS_FORMAT = "ampc-params/1"
+"""The ``format`` tag of a tuned-parameters file."""
+
+_FORMULATIONS = ("local_explicit", "fully_distributed", "virtual_center", "integrated", "none")
+_KEYS = ("format", "example", "formulation", "solver", "settings", "provenance")
+
+
+class TunedParams(NamedTuple):
+    """The contents of a tuned-parameters file (``None``: not given, the default stays).
+
+    example : the vehicle example the numbers were tuned for, or None (any problem).
+    formulation : the formulation they are for (default ``"local_explicit"``).
+    rho_scale : factor on eq.opt_ro's rho_j*: a float or a tuple, one per objective.
+    relaxation : over-relaxation alpha in (0, 2).
+    settings : the example's settings fields to replace (name -> number or numbers).
+    provenance : free-form record of how the numbers were found.
+    """
+
+    example: str | None = None
+    formulation: str = "local_explicit"
+    rho_scale: float | tuple[float, ...] | None = None
+    relaxation: float | None = None
+    settings: dict[str, Any] | None = None
+    provenance: dict[str, Any] | None = None
+
+
+def _number(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{name}: expected a number, got {value!r:.80}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise ValueError(f"{name}: expected a finite number, got {value!r}")
+    return v
+
+
+def _rho_scale(value: Any) -> float | tuple[float, ...] | None:
+    name = "solver.rho_scale"
+    if value is None:
+        return None
+    if hasattr(value, "tolist"):  # numpy / jax arrays
+        value = value.tolist()
+    if isinstance(value, (list, tuple)):
+        if not value:
+            raise ValueError(f"{name}: expected a number or a non-empty list, got []")
+        vals = tuple(_number(f"{name}[{k}]", v) for k, v in enumerate(value))
+    else:
+        vals = (_number(name, value),)
+    for k, v in enumerate(vals):
+        if v <= 0:
+            where = name if len(vals) == 1 and not isinstance(value, list) else f"{name}[{k}]"
+            raise ValueError(f"{where}: expected a positive number, got {v!r}")
+    return vals[0] if not isinstance(value, (list, tuple)) else vals
+
+
+def _relaxation(value: Any) -> float | None:
+    if value is None:
+        return None
+    if hasattr(value, "item"):
+        value = value.item()
+    v = _number("solver.relaxation", value)
+    if not 0.0 < v < 2.0:
+        raise ValueError(f"solver.relaxation: expected a value in (0, 2), got {v!r}")
+    return v
+
+
+def _settings(value: Any) -> dict[str, Any] | None:
+    if value is None:
+        return None
+    if not isinstance(value, Mapping):
+        raise ValueError(f"settings: expected an object (name -> number), got {value!r:.80}")
+    out: dict[str, Any] = {}
+    for key, v in value.items():
+        if not isinstance(key, str) or not key:
+            raise ValueError(f"settings: expected field names, got {key!r}")
+        name = f"settings.{key}"
+        if hasattr(v, "tolist"):
+            v = v.tolist()
+        if isinstance(v, (list, tuple)):
+            out[key] = [_number(f"{name}[{k}]", x) for k, x in enumerate(v)]
+        else:
+            out[key] = _number(name, v)
+    return out
+
+
+def validate_params(doc: Any) -> TunedParams:
+    """A :class:`TunedParams` from a decoded file ``doc`` (ValueError naming the field)."""
+    if not isinstance(doc, Mapping):
+        raise ValueError(f"params: expected a JSON object, got {type(doc).__name__}")
+    unknown = sorted(set(doc) - set(_KEYS))
+    if unknown:
+        raise ValueError(f"{unknown[0]}: unknown field; expected only {list(_KEYS)}")
+    if doc.get("format") != PARAMS_FORMAT:
+        raise ValueError(f"format: expected {PARAMS_FORMAT!r}, got {doc.get('format')!r:.80}")
+    ex = doc.get("example")
+    if ex is not None and (not isinstance(ex, str) or not ex):
+        raise ValueError(f"example: expected an example name or null, got {ex!r:.80}")
+    form = doc.get("formulation", "local_explicit")
+    if form not in _FORMULATIONS:
+        raise ValueError(f"formulation: expected one of {list(_FORMULATIONS)}, got {form!r:.80}")
+    solver = doc.get("solver", {})
+    if solver is None:
+        solver = {}
+    if not isinstance(solver, Mapping):
+        raise ValueError(f"solver: expected an object, got {solver!r:.80}")
+    extra = sorted(set(solver) - {"rho_scale", "relaxation"})
+    if extra:
+        raise ValueError(f"solver.{extra[0]}: unknown field; expected rho_scale, relaxation")
+    prov = doc.get("provenance")
+    if prov is not None and not isinstance(prov, Mapping):
+        raise ValueError(f"provenance: expected an object, got {prov!r:.80}")
+    return TunedParams(
+        example=ex,
+        formulation=form,
+        rho_scale=_rho_scale(solver.get("rho_scale")),
+        relaxation=_relaxation(solver.get("relaxation")),
+        settings=_settings(doc.get("settings")),
+        provenance=None if prov is None else dict(prov),
+    )
+
+
+def params_document(params: TunedParams) -> dict[str, Any]:
+    """The JSON document of ``params`` (validated)."""
+    rs = params.rho_scale
+    doc: dict[str, Any] = {
+        "format": PARAMS_FORMAT,
+        "example": params.example,
+        "formulation": params.formulation,
+        "solver": {
+            "rho_scale": list(rs) if isinstance(rs, (tuple, list)) else rs,
+            "relaxation": params.relaxation,
+        },
+    }
+    if params.settings is not None:
+        doc["settings"] = dict(params.settings)
+    if params.provenance is not None:
+        doc["provenance"] = dict(params.provenance)
+    validate_params(doc)
+    return doc
+
+
+def write_params(
+    path: str | Path,
+    *,
+    example: str | None = None,
+    formulation: str = "local_explicit",
+    rho_scale: Any = None,
+    relaxation: Any = None,
+    settings: Mapping[str, Any] | None = None,
+    provenance: Mapping[str, Any] | None = None,
+) -> TunedParams:
+    """Write a tuned-parameters file at ``path``; returns what was written.
+
+    ``rho_scale``: a float or one per objective (arrays accepted); ``relaxation``
+    in (0, 2); ``settings``: example settings fields by name; ``provenance``:
+    any JSON-serialisable record. ValueError naming the field on a bad value
+    (nothing is written then).
+    """
+    doc = {
+        "format": PARAMS_FORMAT,
+        "example": example,
+        "formulation": formulation,
+        "solver": {"rho_scale": rho_scale, "relaxation": relaxation},
+        "settings": None if settings is None else dict(settings),
+        "provenance": None if provenance is None else dict(provenance),
+    }
+    tuned = validate_params(doc)
+    text = json.dumps(params_document(tuned), indent=2, default=_jsonable) + "\n"
+    Path(path).write_text(text)
+    return tuned
+
+
+def read_params(path: str | Path) -> TunedParams:
+    """Read and validate a tuned-parameters file (ValueError naming the field;
+    ``params: cannot read ...`` when the file is missing or not JSON)."""
+    try:
+        text = Path(path).read_text()
+    except OSError as exc:
+        raise ValueError(f"params: cannot read {path} ({exc.strerror or exc})") from None
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"params: {path} is not JSON ({exc})") from None
+    return validate_params(doc)
+
+
+def apply_params(config: Any, tuned: TunedParams, *, keep: tuple[str, ...] = ()) -> Any:
+    """``config`` (a :class:`~ampc_jax.closed_loop.SimConfig`) with the file's numbers.
+
+    ``rho_scale`` and ``relaxation`` replace the config's unless named in ``keep``
+    (what the caller set explicitly, which wins); ``settings`` replace fields of
+    the example's settings (an integer or boolean field takes an integral
+    number or 0/1). ValueError naming the field when the file was tuned for
+    another example, or a value does not fit.
+    """
+    from dataclasses import replace
+
+    if tuned.example is not None and tuned.example != config.example:
+        raise ValueError(
+            f"example: the file was tuned for the {tuned.example} example, not {config.example}"
+        )
+    changes: dict[str, Any] = {}
+    if tuned.rho_scale is not None and "rho_scale" not in keep:
+        changes["rho_scale"] = tuned.rho_scale
+    if tuned.relaxation is not None and "relaxation" not in keep:
+        changes["relaxation"] = tuned.relaxation
+    try:
+        out = replace(config, **changes) if changes else config
+    except ValueError as exc:
+        raise ValueError(f"solver.{exc}") from None
+    if not tuned.settings:
+        return out
+    settings = out.settings
+    fields: dict[str, Any] = {}
+    for key, value in tuned.settings.items():
+        if key not in settings.field_names():
+            raise ValueError(
+                f"settings.{key}: not a field of the {config.example} example's settings "
+                f"(fields: {', '.join(settings.field_names())})"
+            )
+        kind = type(getattr(settings, key))
+        if kind in (bool, int) and not isinstance(value, list):
+            if float(value) != int(value):
+                raise ValueError(f"settings.{key}: expected an integer, got {value!r}")
+            value = kind(int(value))
+        fields[key] = value
+    try:
+        new = settings.replace(**fields)
+        new.validate()
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"settings.{exc}") from None
+    return replace(out, settings=new)
+
+
+def _jsonable(value: Any) -> Any:
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    raise TypeError(f"provenance: {type(value).__name__} is not JSON serialisable")
