@@ -343,3 +343,24 @@ def test_bench_many_objectives():
         rows = [r for r in _rows(out, "3") if r[2] == name]
         assert rows and rows[0][3] == "2 / 2", out
     assert "smoke run: no result file written" in out, out
+
+
+@pytest.mark.both_cores  # two XLA devices and two DAQP processes
+@pytest.mark.timeout(150)
+def test_bench_sweep(tmp_path):
+    """Every section on tiny sizes: 4 cruise cases x 4 rho points against DAQP and qpax."""
+    pytest.importorskip("daqp")
+    pytest.importorskip("qpax")
+    path = tmp_path / "sweep.json"
+    out = run_bench("bench_sweep.py", "--smoke", "--devices", "2", "--out", str(path), timeout=140)
+    assert "| contender | worst error (Nm) | median error (Nm) |" in out, out
+    (row,) = _rows(out, "4 |")
+    assert len(row) == 9 and float(row[7].replace(",", "")) > 0, row  # LE / DAQP
+    assert "| family | runner | computed / needed | wall (ms) | speed-up |" in out, out
+    assert len(_rows(out, "generated (N_p")) == 2, out  # vmap while_loop, compaction
+    assert "| jax.grad (reverse mode) |" in out and "| forward solve_fixed |" in out, out
+    assert _rows(out, "generated (woodbury") or _rows(out, "generated (dense"), out
+    doc = json.loads(path.read_text())
+    assert "--smoke" in doc["meta"]["command"], doc["meta"]
+    assert set(doc["results"]) == {"throughput", "waste", "grad", "pencil"}, doc["results"]
+    assert doc["results"]["grad"]["grad_over_forward"] > 0, doc["results"]["grad"]

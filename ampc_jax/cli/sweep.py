@@ -88,6 +88,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             float32=args.float32,
             compaction=not args.no_compaction,
             duration=args.duration,
+            groups=args.groups,
         )
         summary = run_sweep(
             spec, args.out, progress=False if args.quiet else None, figures=not args.no_figures
@@ -204,6 +205,16 @@ def add_sweep_command(sub: Any) -> None:
         type=arg_type(at_least_one, int),
         default=256,
         help="cases per chunk: the memory bound and the resume grain (default: 256)",
+    )
+    p.add_argument(
+        "--groups",
+        choices=("paper", "full"),
+        default=None,
+        help=(
+            "agent groups of a vehicle step family: paper (the example's, what the closed "
+            "loop runs; its cruise groups drop a weak coupling) or full (every agent in "
+            "every group: exact) (default: paper)"
+        ),
     )
     p.add_argument(
         "--duration",

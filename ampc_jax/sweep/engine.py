@@ -83,8 +83,9 @@ class Work(NamedTuple):
 
     @property
     def waste(self) -> float:
-        """computed / needed (1 is no waste)."""
-        return float(self.computed) / max(float(self.needed), 1.0)
+        """computed / needed (1 is no waste; NaN when nothing was needed)."""
+        needed = float(self.needed)
+        return float(self.computed) / needed if needed > 0 else float("nan")
 
 
 def _core(solver: Any) -> tuple[Any, Any]:

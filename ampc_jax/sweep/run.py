@@ -85,6 +85,9 @@ class SweepSpec:
     float32 : solve in float32 (default float64).
     compaction : re-batch the pairs still running between segments (default True).
     duration : simulated seconds of a closed-loop family's runs (default: the scenario's).
+    groups : agent groups of a vehicle step family: ``"paper"`` (default, the
+        example's own) or ``"full"`` (every agent in every group: the exact
+        decomposition, :data:`~ampc_jax.sweep.families.GROUPS`).
 
     A closed-loop family (``kind="loop"``) gives one row per (manoeuvre, point)
     with the run's reductions (:class:`~ampc_jax.sweep.loops.LoopRow`); its
@@ -105,6 +108,7 @@ class SweepSpec:
     float32: bool = False
     compaction: bool = True
     duration: float | None = None
+    groups: str | None = None
 
     def __post_init__(self) -> None:
         fam = family(self.family)
@@ -280,7 +284,7 @@ def run_sweep(
     """
     import pyarrow as pa
     import pyarrow.parquet as pq
-    from tqdm.auto import tqdm
+    from tqdm import tqdm
 
     t_start = time.perf_counter()
     out = Path(out)
@@ -527,6 +531,10 @@ def _sample_options(spec: SweepSpec, fam: Any) -> dict[str, Any]:
     kw: dict[str, Any] = {}
     if "dtype" in fam.options:
         kw["dtype"] = spec.dtype
+    if spec.groups is not None:
+        if "groups" not in fam.options:
+            raise ValueError(f"groups: family {spec.family!r} has no groups option")
+        kw["groups"] = spec.groups
     if spec.horizon is not None:
         if "horizon" not in fam.options:
             raise ValueError(f"horizon: family {spec.family!r} has no horizon option")

@@ -287,7 +287,7 @@ def tune_solver(
     ``progress``: tqdm's ``disable`` negated (None: on a terminal only).
     """
     import optax
-    from tqdm.auto import tqdm
+    from tqdm import tqdm
 
     from ..sweep.families import family
 

@@ -160,3 +160,16 @@ def test_closed_loop_family(tmp_path, capsys):
     # the drawn friction of each case is in its rows
     mu = tab.column("mu").to_numpy()
     assert mu[0] == mu[1] and mu[2] == mu[3] and mu[0] != mu[2]
+
+
+def test_full_groups_reach_the_integrated_optimum(tmp_path, capsys):
+    # the reference is Clarabel on the condensed QP: with every agent in every
+    # group the decomposition is exact, and e_sub shrinks with the tolerance
+    # (the paper's cruise groups drop a weak coupling: several Nm by design)
+    out = tmp_path / "full"
+    args = ["sweep", "--family", "cruise_step", "--cases", "12", "--rho", "1", "--groups"]
+    args += ["full", "--tol", "1e-8", "--max-iter", "2000", "--quiet", "--no-figures"]
+    assert main([*args, "--out", str(out)]) == 0
+    tab = _table(out)
+    assert all(tab.column("converged").to_pylist())
+    assert float(np.max(tab.column("e_sub").to_numpy())) < 1e-2
