@@ -122,9 +122,11 @@ def _weights(args: argparse.Namespace, out: Path) -> int:
                 f"got {fam.name!r} ({fam.kind})"
             )
         cases = fam.sample(args.cases, seed=args.seed)
+        heldout = fam.sample(args.cases, seed=args.heldout_seed)
         res = tune_weights(
             cases.config,
             cases,
+            heldout=heldout,
             steps=args.steps,
             iterations=args.iterations,
             lr=args.lr,

@@ -187,6 +187,13 @@ class SimConfig:
         (squared norms in Nm^2; the dual test is on the slack's change, the
         formulations' default). Default 1.0.
     max_iter : the controller's iteration cap (default 200).
+    fixed_iterations : ``None`` (default): the controller solves each step to
+        ``tol_primal`` / ``tol_dual`` (a ``while_loop``, capped at ``max_iter``).
+        An integer K >= 1: exactly K iterations per step (the formulation's
+        ``solve_fixed``, a ``lax.scan``), which makes the closed loop
+        reverse-mode differentiable with respect to :class:`LoopParams` (weight
+        tuning, :mod:`ampc_jax.tuning.weights`; run it with ``shadow=False``:
+        the shadow still solves to tolerance). ``max_iter`` is then unused.
     warm_start : warm start from the previous step's state (default True;
         ``False``: cold start at every step, as the paper).
     warm_shift : 1 shifts the previous iterate one step along the horizon, 0
@@ -228,6 +235,7 @@ class SimConfig:
     tol_primal: float = 1.0
     tol_dual: float = 1.0
     max_iter: int = 200
+    fixed_iterations: int | None = None
     warm_start: bool = True
     warm_shift: int | None = None
     rho_scale: float | tuple[float, ...] | None = None
@@ -262,6 +270,14 @@ class SimConfig:
             object.__setattr__(self, name, _positive_float(name, getattr(self, name)))
         for name in ("max_iter", "shadow_max_iter"):
             object.__setattr__(self, name, _positive_int(name, getattr(self, name)))
+        if self.fixed_iterations is not None:
+            fixed = self.fixed_iterations
+            if isinstance(fixed, bool) or not isinstance(fixed, (int, np.integer)) or fixed < 1:
+                raise ValueError(
+                    f"fixed_iterations: expected None (solve to tolerance) or an integer "
+                    f"K >= 1 (iterations per step), got {fixed!r}"
+                )
+            object.__setattr__(self, "fixed_iterations", int(fixed))
         for name in ("warm_start", "shadow"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"{name}: expected True or False, got {getattr(self, name)!r}")
@@ -374,6 +390,7 @@ class SimConfig:
             warm_start=self.warm_start,
             warm_shift=self.warm_shift,
             vehicle=self.vehicle,
+            fixed_iterations=self.fixed_iterations,
         )
 
     def simulator(self) -> Any:

@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..admm.runners import check_iterations
 from ..admm.state import ADMMState
 from ..formulations import FORMULATIONS, Formulation, formulation
 from ..problem.data import ProblemData, make_data
@@ -86,6 +87,14 @@ class Controller:
     warm_start : start each step from the previous step's state (default True).
     warm_shift : 1 shifts that state one step along the horizon, 0 holds it.
     vehicle : the vehicle data the model uses.
+    fixed_iterations : ``None`` (default): solve to eq.Convergence's tolerance
+        (``solve``, a ``while_loop``, capped at ``max_iter``). An integer K >= 1:
+        exactly K iterations per step (``solve_fixed``, a ``lax.scan``), so the
+        step, and a closed loop of such steps, is reverse-mode differentiable
+        with respect to :class:`ControllerParams` (weights, bounds, rho,
+        relaxation). The status is then ``solved`` where the K-th iterate meets
+        the tolerance, else ``max_iter_reached`` (both applied); the fallback
+        guard is the same.
     """
 
     example: VehicleExample
@@ -97,6 +106,7 @@ class Controller:
     warm_start: bool = True
     warm_shift: int = 1
     vehicle: VehicleParams = field(default_factory=VehicleParams)
+    fixed_iterations: int | None = None
 
     def __post_init__(self) -> None:
         if self.formulation not in FORMULATIONS:
@@ -110,6 +120,9 @@ class Controller:
                 f"enabled: expected some of {list(self.example.objectives)}, got {self.enabled!r}"
             )
         object.__setattr__(self, "enabled", tuple(self.enabled))
+        if self.fixed_iterations is not None:
+            k = check_iterations(self.fixed_iterations, "fixed_iterations")
+            object.__setattr__(self, "fixed_iterations", k)
 
     # -- static structure ---------------------------------------------------------
     @functools.cached_property
@@ -202,7 +215,8 @@ class Controller:
 
         Returns (4,) wheel torques [FL, FR, RL, RR] in Nm, the next state and a
         :class:`StepInfo`. Pure and jittable (``params`` traced: one compiled
-        step for every rho, relaxation, tolerance, weight and bound).
+        step for every rho, relaxation, tolerance, weight and bound); with
+        ``fixed_iterations`` also reverse-mode differentiable in ``params``.
         """
         if params.settings.horizon != self.horizon:
             raise ValueError(
@@ -216,7 +230,10 @@ class Controller:
         data = self.problem_data(params, meas, driver)
         cold = solver.cold_state(dtype)
         warm_in = state.warm if self.warm_start else cold
-        res = solver.solve(data, params.solver, warm_in)
+        if self.fixed_iterations is None:
+            res = solver.solve(data, params.solver, warm_in)
+        else:
+            res = solver.solve_fixed(data, self.fixed_iterations, params.solver, warm_in)
         u0 = res.u0
         ok = jnp.isin(res.status, jnp.asarray(OK_STATUS)) & jnp.all(jnp.isfinite(u0))
         lb0 = jnp.where(jnp.isfinite(data.lb[0]), data.lb[0], 0.0)

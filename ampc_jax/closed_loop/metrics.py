@@ -110,6 +110,7 @@ class SimResult:
             "warm_start": c.warm_start,
             "horizon": c.horizon,
             "max_iter": c.max_iter,
+            "fixed_iterations": c.fixed_iterations,
             "tol_primal": c.tol_primal,
             "tol_dual": c.tol_dual,
             **c.solver_options(),

@@ -1,5 +1,6 @@
-"""Gradient tuning: the solver's speed (:mod:`.solver`) and the tuned-parameters file
-(:mod:`.params_file`)."""
+"""Gradient tuning: the solver's speed (:mod:`.solver`), the objectives' weights
+through the differentiable closed loop (:mod:`.weights`) and the
+tuned-parameters file (:mod:`.params_file`)."""
 
 from __future__ import annotations
 
@@ -11,9 +12,31 @@ from .params_file import (
     validate_params,
     write_params,
 )
+from .weights import (
+    LossOptions,
+    LossTerms,
+    WeightsResult,
+    evaluate_settings,
+    log_weights,
+    loop_loss,
+    soft_max,
+    tune_weights,
+    weight_fields,
+    with_log_weights,
+)
 
 __all__ = [
+    "LossOptions",
+    "LossTerms",
     "PARAMS_FORMAT",
+    "WeightsResult",
+    "evaluate_settings",
+    "log_weights",
+    "loop_loss",
+    "soft_max",
+    "tune_weights",
+    "weight_fields",
+    "with_log_weights",
     "TunedParams",
     "apply_params",
     "read_params",
