@@ -45,6 +45,8 @@ def test_every_option_states_its_default():
         "plant",
         "export",
         "replay",
+        "sweep",
+        "tune",
     }
     assert len(options) > 30
     for name, action in options:

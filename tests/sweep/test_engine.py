@@ -49,6 +49,7 @@ def test_frozen_pairs_report_their_own_iterations():
     assert its.sum() <= int(w1.computed) < int(w0.computed)
 
 
+@pytest.mark.slow
 def test_anderson_counts_agree_to_round_off():
     # Anderson's least squares amplifies last-bit differences between batch
     # sizes (vectorised code differs), so counts of slow pairs move by a few %

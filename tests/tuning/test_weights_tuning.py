@@ -73,6 +73,7 @@ def test_closed_loop_gradient_matches_central_differences(cases):
 
 
 @pytest.mark.timeout(40)
+@pytest.mark.slow  # 18 s, mostly compiling; the gradient test covers the loop
 def test_three_tuning_steps_lower_the_loss(cases):
     res = tune_weights(
         cases.config,
