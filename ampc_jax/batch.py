@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import PartitionSpec
 
-__all__ = ["map_scenarios"]
+__all__ = ["map_scenarios", "pad_cases"]
 
 
 def _leading(xs: Any) -> int:
@@ -41,6 +41,17 @@ def _leading(xs: Any) -> int:
     if len(sizes) != 1:
         raise ValueError(f"xs: every leaf needs the same leading (batch) size, got {sorted(sizes)}")
     return sizes.pop()
+
+
+def pad_cases(xs: Any, n: int) -> Any:
+    """The pytree ``xs`` with its leading (batch) axis padded to ``n`` by copies of
+    its last case (a batch that splits evenly over devices or chunks)."""
+    have = _leading(xs)
+    if have == n:
+        return xs
+    return jax.tree.map(
+        lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], n - have, axis=0)], axis=0), xs
+    )
 
 
 def map_scenarios(
@@ -72,10 +83,7 @@ def map_scenarios(
         return jax.lax.map(fn, xs, batch_size=min(int(chunk), B))
     n = len(devs)
     pad = (-B) % n
-    if pad:
-        xs = jax.tree.map(
-            lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)], axis=0), xs
-        )
+    xs = pad_cases(xs, B + pad)
     mesh = jax.sharding.Mesh(np.asarray(devs), ("scenarios",))
     per = (B + pad) // n
     spec = PartitionSpec("scenarios")

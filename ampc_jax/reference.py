@@ -19,7 +19,13 @@ from .problem.data import ProblemData
 from .problem.topology import Topology
 from .results import USABLE_STATUS, SolveResult
 
-__all__ = ["OSQPReference", "clarabel_solve", "reference_gap", "solve_reference"]
+__all__ = [
+    "OSQPReference",
+    "clarabel_solve",
+    "reference_gap",
+    "reference_inputs",
+    "solve_reference",
+]
 
 
 def _numpy_qp(topology: Topology, data: ProblemData) -> CondensedQP:
@@ -126,6 +132,22 @@ def solve_reference(
         rho=np.array([np.nan]),
         state=elapsed,
     )
+
+
+def reference_inputs(topology: Topology, data: ProblemData, eps: float = 1e-9) -> np.ndarray:
+    """U* (n, N_p, n_u) of every case of a batched ``data`` (leading axis n):
+    the integrated optimum by Clarabel (:func:`solve_reference`), float64, NaN
+    for a case without a usable solution."""
+    import jax
+
+    host = jax.tree.map(lambda x: np.asarray(x, np.float64), data)
+    n = int(np.shape(host.x0)[0])
+    out = np.full((n, topology.horizon, topology.n_u), np.nan)
+    for i in range(n):
+        res = solve_reference(topology, jax.tree.map(lambda x, i=i: x[i], host), eps=eps)
+        if int(res.status) in USABLE_STATUS:
+            out[i] = np.asarray(res.u, float)
+    return out
 
 
 def _reference_status(name: str) -> int:

@@ -369,7 +369,7 @@ def le_setup(cases: Any, tol: float, n_cases: int) -> tuple[Any, Any, Any, Any]:
         tol_dual=tol,
     )
     data = _take(cases.data, 0, n_cases)
-    return solver, pair_data(data, P), pair_params(solver, grid, n_cases), grid
+    return solver, pair_data(data, P), pair_params(grid, n_cases), grid
 
 
 def tune_tol(cases: Any, ref: np.ndarray, devs: list) -> list[dict[str, Any]]:
@@ -580,7 +580,7 @@ def section_waste(args: Any, devs: list) -> dict[str, Any]:
             tol_primal=tol,
             tol_dual=tol,
         )
-        pd_, pp = jax.device_put((pair_data(cases.data, P), pair_params(solver, grid, n)))
+        pd_, pp = jax.device_put((pair_data(cases.data, P), pair_params(grid, n)))
         base = None
         for comp, seg in [(False, 16)] + [(True, s) for s in segs]:
             f = lambda: jax.block_until_ready(  # noqa: E731
@@ -722,7 +722,7 @@ def pencil_programs(solver: Any, grid_rho: Any) -> dict[str, Any]:
 
     def library_setup(data: Any, params: Any) -> Any:
         B = int(np.shape(data.A)[0])
-        pd_, pp = pair_data(data, P), pair_params(solver, params, B)
+        pd_, pp = pair_data(data, P), pair_params(params, B)
         s = jax.vmap(solver.setup)(pd_, pp)
         return s.Kinv, s.KE
 

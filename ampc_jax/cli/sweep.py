@@ -114,7 +114,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             f"({summary.rows / summary.solve_s:.2f} loops/s, compile included)"
         )
     elif summary.chunks_run:
-        steady = summary.extra.get("steady_pairs_per_s")
+        steady = summary.steady_pairs_per_s
         rate = (
             f"{steady:,.0f} case-point solves/s after the first chunk"
             if steady

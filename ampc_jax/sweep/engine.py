@@ -221,7 +221,7 @@ def solve_pairs(
     return out, work
 
 
-def pair_params(solver: Any, grid: SolverParams, n_cases: int) -> SolverParams:
+def pair_params(grid: SolverParams, n_cases: int) -> SolverParams:
     """``grid`` (leading axis P) tiled for ``n_cases`` cases: pair q = case q // P, point q % P."""
     return jax.tree.map(
         lambda x: jnp.tile(jnp.asarray(x), (int(n_cases),) + (1,) * (jnp.ndim(x) - 1)), grid

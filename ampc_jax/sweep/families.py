@@ -23,6 +23,7 @@ adds one from Python (``docs/sweeps.md``).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
@@ -311,26 +312,17 @@ def _cruise_manoeuvres(n: int, seed: int, start: int, *, dtype: Any = None) -> L
     return LoopCases(config_for(spec), stacked, spec.n_steps, cols)
 
 
-register_family(
-    Family(
-        "cruise_step",
-        "step",
-        "single control steps of the cruise example (LST + YRT) at operating points "
-        "over its envelope (ENVELOPES['cruise'])",
-        lambda n, seed, start, **kw: _vehicle_steps("cruise", n, seed, start, **kw),
-        ("horizon", "formulation", "groups", "dtype"),
+for _name, _objectives in (("cruise", "LST + YRT"), ("stability", "VSC + WSC")):
+    register_family(
+        Family(
+            f"{_name}_step",
+            "step",
+            f"single control steps of the {_name} example ({_objectives}) at operating "
+            f"points over its envelope (ENVELOPES[{_name!r}])",
+            functools.partial(_vehicle_steps, _name),
+            ("horizon", "formulation", "groups", "dtype"),
+        )
     )
-)
-register_family(
-    Family(
-        "stability_step",
-        "step",
-        "single control steps of the stability example (VSC + WSC) at operating points "
-        "over its envelope (ENVELOPES['stability'])",
-        lambda n, seed, start, **kw: _vehicle_steps("stability", n, seed, start, **kw),
-        ("horizon", "formulation", "groups", "dtype"),
-    )
-)
 register_family(
     Family(
         "generated",

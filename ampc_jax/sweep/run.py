@@ -27,7 +27,7 @@ from __future__ import annotations
 import json
 import subprocess
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -36,6 +36,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..batch import pad_cases
+from ..reference import reference_inputs
 from ..results import STATUS
 from .engine import Work, pair_data, pair_params, sweep_solve
 from .families import StepCases, family
@@ -157,7 +159,7 @@ class SweepSummary:
     needed: int
     devices: int
     processes: int
-    extra: dict[str, Any] = field(default_factory=dict)
+    steady_pairs_per_s: float | None = None  # after the first chunk, which compiles
 
     @property
     def waste(self) -> float:
@@ -190,30 +192,6 @@ def _tol(spec: SweepSpec, cases: StepCases) -> float:
     if spec.tol is not None:
         return float(spec.tol)
     return float(cases.config.tol_primal) if cases.config is not None else 1e-6
-
-
-def _reference_u0(topology: Any, data: Any) -> np.ndarray:
-    """First-step inputs of the integrated optimum per case (Clarabel; NaN where it fails)."""
-    from ..reference import solve_reference
-
-    host = jax.tree.map(lambda x: np.asarray(x, np.float64), data)
-    n = int(host.A.shape[0])
-    out = np.full((n, topology.n_u), np.nan)
-    for i in range(n):
-        res = solve_reference(topology, jax.tree.map(lambda x, i=i: x[i], host))
-        if int(res.status) in (0, 5):
-            out[i] = np.asarray(res.u)[0]
-    return out
-
-
-def _pad_cases(tree: Any, n: int) -> Any:
-    """Pad the leading axis to ``n`` with copies of the last case."""
-    have = int(np.shape(jax.tree.leaves(tree)[0])[0])
-    if have == n:
-        return tree
-    return jax.tree.map(
-        lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], n - have, axis=0)], axis=0), tree
-    )
 
 
 def _local_rows(arrays: Any) -> tuple[np.ndarray, Any]:
@@ -290,10 +268,10 @@ def run_sweep(
     out = Path(out)
     lead = jax.process_index() == 0
     _check_manifest(out, spec)
-    if family(spec.family).kind == "loop" and jax.process_count() > 1:
+    fam = family(spec.family)
+    if fam.kind == "loop" and jax.process_count() > 1:
         raise ValueError("family: closed-loop sweeps run in one process (its devices sharded)")
     (out / "chunks").mkdir(parents=True, exist_ok=True)
-    fam = family(spec.family)
     devs = list(jax.devices() if devices is None else devices)
     n_dev = len(devs)
     chunk = -(-spec.chunk // n_dev) * n_dev  # a multiple of the device count
@@ -397,7 +375,7 @@ def run_sweep(
         needed=needed,
         devices=n_dev,
         processes=jax.process_count(),
-        extra={"steady_pairs_per_s": _steady_rate(chunk_s, chunk * P)},
+        steady_pairs_per_s=_steady_rate(chunk_s, chunk * P),
     )
 
 
@@ -416,8 +394,8 @@ def _step_rows(
         tol_dual=tol,
         dtype=spec.dtype,
     )
-    data = _pad_cases(cases.data, chunk)
-    pd_, pp = pair_data(data, P), pair_params(solver, grid, chunk)
+    data = pad_cases(cases.data, chunk)
+    pd_, pp = pair_data(data, P), pair_params(grid, chunk)
     res, work = sweep_solve(solver, pd_, pp, devices=devs, compaction=spec.compaction)
     idx, local = _local_rows(res)
     _, wk = _local_rows(work)
@@ -430,7 +408,7 @@ def _step_rows(
     t0 = time.perf_counter()
     mine = np.unique(case_local)
     ref = np.full((n, T.n_u), np.nan)
-    ref[mine] = _reference_u0(T, jax.tree.map(lambda x: np.asarray(x)[mine], cases.data))
+    ref[mine] = reference_inputs(T, jax.tree.map(lambda x: np.asarray(x)[mine], cases.data))[:, 0]
     ref_t = time.perf_counter() - t0
     e_sub = np.max(np.abs(np.asarray(local.u0, np.float64) - ref[case_local]), axis=1)
     cols: dict[str, Any] = {
@@ -494,7 +472,7 @@ def _loop_rows(
     n_steps = cases.n_steps
     if spec.duration is not None:
         n_steps = int(round(check_duration(spec.duration) / CONTROL_DT))
-    sc = _pad_cases(jax.tree.map(jnp.asarray, cases.scenarios), chunk)
+    sc = pad_cases(jax.tree.map(jnp.asarray, cases.scenarios), chunk)
     rows = loop_pairs(cfg, sc, np.asarray(spec.rho), n_steps, dtype=spec.dtype)
     rows = jax.tree.map(lambda x: np.asarray(x)[: n * P], rows)
     idx = np.arange(n * P)

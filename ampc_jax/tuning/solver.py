@@ -39,7 +39,7 @@ from ..admm.params import SolverParams
 from ..formulations import formulation
 from ..problem.data import ProblemData
 from ..problem.topology import Topology
-from ..reference import solve_reference
+from ..reference import reference_inputs as batch_reference
 
 __all__ = [
     "GRID_SCALES",
@@ -100,18 +100,15 @@ def theta_of(rho_scale: Any, relaxation: float, n_objectives: int, dtype: Any = 
 
 
 def reference_inputs(topology: Topology, data: ProblemData) -> np.ndarray:
-    """U* (n, N_p, n_u): the integrated optimum of each case (Clarabel), float64.
+    """U* (n, N_p, n_u): the integrated optimum of each case (Clarabel), float64
+    (:func:`ampc_jax.reference.reference_inputs`).
 
     ValueError when a case has no usable reference (infeasible or failed)."""
-    host = jax.tree.map(np.asarray, data)
-    n = int(np.shape(host.x0)[0])
-    out = []
-    for i in range(n):
-        res = solve_reference(topology, jax.tree.map(lambda x, i=i: x[i], host))
-        if not np.all(np.isfinite(res.u)):
-            raise ValueError(f"cases: case {i} has no reference optimum (status {res.status})")
-        out.append(np.asarray(res.u, float))
-    return np.stack(out)
+    out = batch_reference(topology, data)
+    bad = np.flatnonzero(~np.all(np.isfinite(out), axis=(1, 2)))
+    if bad.size:
+        raise ValueError(f"cases: case {int(bad[0])} has no reference optimum")
+    return out
 
 
 def unrolled_loss(

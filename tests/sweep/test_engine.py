@@ -17,7 +17,7 @@ def _pairs(name, n, points, solver_name="local_explicit", tol=1e-8, **opts):
     solver = formulation(solver_name, cases.topology, **opts)
     rho = np.asarray(points)[:, None] * np.ones((1, solver.n_rho))
     grid = solver.params(rho=rho, tol_primal=tol, tol_dual=tol)
-    return solver, pair_data(cases.data, len(points)), pair_params(solver, grid, n)
+    return solver, pair_data(cases.data, len(points)), pair_params(grid, n)
 
 
 def _one(tree, q):
@@ -86,7 +86,7 @@ def test_float32_runs():
     solver = formulation("local_explicit", cases.topology, max_iter=300)
     grid = solver.params(rho=[[1.0, 1.0]], tol_primal=1.0, tol_dual=1.0, dtype=jnp.float32)
     out, _ = jax.jit(lambda d, p: solve_pairs(solver, d, p))(
-        pair_data(cases.data, 1), pair_params(solver, grid, 8)
+        pair_data(cases.data, 1), pair_params(grid, 8)
     )
     assert out.u0.dtype == jnp.float32
     assert np.all(np.isfinite(np.asarray(out.u0)))

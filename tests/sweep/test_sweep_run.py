@@ -90,7 +90,7 @@ PARTITION = textwrap.dedent(
     c = family("generated").sample(8, seed=1)
     s = formulation("local_explicit", c.topology, max_iter=200)
     g = s.params(rho=[[1.0, 1.0], [2.0, 2.0]])
-    res, work = sweep_solve(s, pair_data(c.data, 2), pair_params(s, g, 8))
+    res, work = sweep_solve(s, pair_data(c.data, 2), pair_params(g, 8))
     shards = res.iterations.addressable_shards
     assert len({sh.device for sh in shards}) == 4
     assert all(sh.data.shape == (4,) for sh in shards)
