@@ -19,6 +19,7 @@ import numpy as np
 from ..prediction import block_toeplitz, matrix_powers
 from ..problem.data import ProblemData
 from ..problem.topology import Topology
+from . import riccati
 from .layout import padded_layout
 from .linalg import block_diag, small_cholesky
 
@@ -32,6 +33,11 @@ class PaddedCosts(NamedTuple):
     Q2 : (J, r, r) 2 Qbar_j = 2 I (x) Q_j.   Qh : (J, r, r) a factor, Q2 = Qh Qh',
     I (x) chol(2 Q_j).   BH : (J, U, U) 2 R_j / m (+ identity on padding).
     H : (J, n, n) H_j = Y_u' 2Qbar Y_u + I (x) BH.   E : (J, n) E_j.
+    A : (n_x, n_x) the model; Bu : (J, n_x, U) objective j's input columns B_j
+    (zero on padding); Qx : (J, n_x, n_x) C_j' 2Q_j C_j: the stage form the
+    structured solve (:mod:`~.riccati`) works on.
+
+    Without the condensed form (``condensed=False``) Yu, Q2, Qh and H are None.
     """
 
     Yu: Any
@@ -40,9 +46,14 @@ class PaddedCosts(NamedTuple):
     BH: Any
     H: Any
     E: Any
+    A: Any = None
+    Bu: Any = None
+    Qx: Any = None
 
 
-def padded_costs(topology: Topology, data: ProblemData, with_H: bool = True) -> PaddedCosts:
+def padded_costs(
+    topology: Topology, data: ProblemData, with_H: bool = True, condensed: bool = True
+) -> PaddedCosts:
     """H_j, E_j of every objective in the padded layout, all objectives at once.
 
     Same formulas as :func:`~ampc_jax.prediction.quadratic_cost` (eq.F3_primal_1,
@@ -50,7 +61,10 @@ def padded_costs(topology: Topology, data: ProblemData, with_H: bool = True) -> 
     E_j = 2 Y_u,j' Qbar_j (Y_x,j X^(0) + Y_w,j Wbar - ref_j). The matrix powers
     and the free response are shared by all objectives; padded inputs get an
     identity block in H, padded outputs zero weight. ``with_H=False`` skips
-    forming H (n^2 r work) for the low-rank path, which never needs it.
+    forming H (n^2 r work) for the low-rank path, which never needs it;
+    ``condensed=False`` skips Y_u too (the structured solve, :mod:`~.riccati`):
+    E_j then comes from a forward and an adjoint sweep of the model
+    (:func:`~.riccati.linear_cost`).
     """
     T = topology
     lay = padded_layout(T)
@@ -66,6 +80,13 @@ def padded_costs(topology: Topology, data: ProblemData, with_H: bool = True) -> 
     Rx = jnp.pad(data.R, ((0, 1), (0, 1)))
     Rj = Rx[lay.cols[:, :, None], lay.cols[:, None, :]] * jnp.asarray(lay.scale, dt)[:, :, None]
     BH = 2.0 * Rj + jnp.asarray(np.eye(U)[None] * (1.0 - lay.umask)[:, :, None], dt)
+    Cq = 2.0 * jnp.einsum("jyz,jzx->jyx", Qp, Cp)  # 2 Q_j C_j
+    Qx = jnp.einsum("jyx,jyz->jxz", Cp, Cq)  # C_j' 2Q_j C_j
+    Qx = 0.5 * (Qx + jnp.swapaxes(Qx, 1, 2))
+    if not condensed:
+        Cr = jnp.einsum("jyx,jky->jkx", Cq, refp)  # C_j' 2Q_j ref_j,k
+        E = riccati.linear_cost(data.A, Bj, Qx, Cr, data.x0, data.w)
+        return PaddedCosts(None, None, None, BH, None, E, data.A, Bj, Qx)
     Pw = matrix_powers(data.A, N)  # A^0..A^N
     # free response x^(k+1) = A^(k+1) x0 + sum_{l<=k} A^(k-l) w_l
     xf = Pw[1:] @ data.x0 + (block_toeplitz(Pw[:N], N) @ data.w.reshape(-1)).reshape(N, -1)
@@ -82,7 +103,7 @@ def padded_costs(topology: Topology, data: ProblemData, with_H: bool = True) -> 
         H = jnp.swapaxes(Yu, 1, 2) @ QYu + block_diag(BH, N)
         H = 0.5 * (H + jnp.swapaxes(H, 1, 2))
     E = jnp.einsum("jam,ja->jm", QYu, free)
-    return PaddedCosts(Yu, Q2, Qh, BH, H, E)
+    return PaddedCosts(Yu, Q2, Qh, BH, H, E, data.A, Bj, Qx)
 
 
 def unpad_matrix(M: Any, n_u: int, U: int, horizon: int) -> Any:

@@ -26,9 +26,15 @@ in the equilibrated units. A set empty by less than the margin, or one that
 needs more than :data:`CERTIFY_ITERATIONS` iterations, is not certified.
 
 The formulations call :func:`with_certificate` on every result: it searches
-(a ``lax.cond``) when the solve did not converge or its inputs violate a row,
-so a converged control step inside its constraints pays one matrix product
-(under ``vmap`` both branches run).
+(a ``lax.cond``) when the solve did not converge or when its inputs violate a
+row and a cheap repair of them (:func:`repaired_inputs`: a few projections on
+the violated rows and the bounds, then the exact test A_in u <= b_in) finds no
+point of the set either. A point that passes the exact test proves the set
+non-empty, so a converged control step pays a few matrix products. Under
+``vmap`` the decision is taken for the whole batch (a custom batching rule):
+the search runs when some case needs it, not, as a batched ``lax.cond``
+would, always (200 iterations per case: 3x the whole step of the cruise QP
+with general rows, ``bench/bench_peers.py``).
 """
 
 from __future__ import annotations
@@ -47,6 +53,7 @@ __all__ = [
     "EPS_INFEASIBLE",
     "Certificate",
     "certify",
+    "repaired_inputs",
     "violation",
     "with_certificate",
 ]
@@ -146,19 +153,75 @@ def violation(data: ProblemData, u: Any) -> Any:
     return jnp.max(u @ data.Ain.T - data.bin)
 
 
+REPAIR_PASSES = 4
+"""Projection passes of :func:`repaired_inputs`."""
+
+
+def repaired_inputs(data: ProblemData, u: Any, passes: int = REPAIR_PASSES) -> Any:
+    """u (N_p, n_u) moved toward the constraint set: ``passes`` simultaneous
+    projections on the rows it violates (each row's target tightened by a
+    rounding margin), each followed by the clip to the bounds.
+
+    Only a candidate: :func:`with_certificate` tests the exact A_in u <= b_in
+    on it. A converged solve violates rows by about sqrt(eps_r), which one
+    such pass removes unless the set is (nearly) empty.
+    """
+    A, b = data.Ain, data.bin
+    if A.shape[0] == 0:
+        return u
+    eps = jnp.finfo(A.dtype).eps
+    n2 = jnp.sum(A * A, axis=1)
+    inv = jnp.where(n2 > 0, 1.0 / jnp.where(n2 > 0, n2, 1.0), 0.0)
+    for _ in range(passes):
+        Au = u @ A.T
+        margin = 64 * eps * (jnp.abs(b) + jnp.abs(u) @ jnp.abs(A).T)
+        over = jnp.maximum(Au - b + margin, 0.0) * inv  # (N, n_c)
+        u = jnp.clip(u - over @ A, data.lb, data.ub)
+    return u
+
+
+def _search(check: Any, data: ProblemData) -> Certificate:
+    return jax.lax.cond(check, lambda d: certify(d), lambda d: no_certificate(d), data)
+
+
+@jax.custom_batching.custom_vmap
+def _batched_search(check: Any, data: ProblemData) -> Certificate:
+    return _search(check, data)
+
+
+@_batched_search.def_vmap
+def _search_rule(axis_size: int, in_batched: Any, check: Any, data: ProblemData) -> tuple:
+    """One decision for the batch: search (every case, vmapped) when any case
+    needs it, keep the certificate only where it was asked for."""
+    c_b, d_b = in_batched
+
+    def full(x: Any, b: bool) -> Any:
+        return x if b else jnp.broadcast_to(x, (axis_size, *jnp.shape(x)))
+
+    check = full(check, c_b)
+    data = jax.tree.map(full, data, d_b)
+    none = jax.vmap(no_certificate)(data)
+    cert = jax.lax.cond(jnp.any(check), lambda d: jax.vmap(certify)(d), lambda d: none, data)
+    cert = jax.tree.map(
+        lambda c, z: jnp.where(check.reshape((axis_size,) + (1,) * (c.ndim - 1)), c, z), cert, none
+    )
+    return cert, jax.tree.map(lambda _: True, cert)
+
+
 def with_certificate(result: SolveResult, data: ProblemData) -> SolveResult:
     """``result`` with status ``infeasible`` (3) and its :class:`Certificate` when
     the constraint set is empty.
 
-    The search runs (``lax.cond``) when the solve did not converge, or when it
-    converged to inputs that violate some row at all: the stopping rule
-    accepts violations of about sqrt(eps_r), so a set that is empty by less
-    than that would otherwise come back solved. Converged inputs that satisfy
-    every row prove the set non-empty and are not searched (the vehicle
-    examples' rows are boxes and their output is projected on them, so their
-    control steps do not pay for the search)."""
-    check = (result.status != 0) | (violation(data, result.u) > 0)
-    cert = jax.lax.cond(check, lambda d: certify(d), lambda d: no_certificate(d), data)
+    The search runs (``lax.cond``; under ``vmap`` once for the batch) when the
+    solve did not converge, or when it converged to inputs that violate some
+    row and their repair (:func:`repaired_inputs`) does not satisfy every row
+    exactly either: the stopping rule accepts violations of about
+    sqrt(eps_r), so a set that is empty by less than that would otherwise come
+    back solved. A point that satisfies every row proves the set non-empty;
+    the result's inputs themselves are not changed."""
+    fixed = repaired_inputs(data, result.u)
+    check = (result.status != 0) | ((violation(data, result.u) > 0) & (violation(data, fixed) > 0))
+    cert = _batched_search(check, jax.lax.stop_gradient(data))
     status = jnp.where(cert.infeasible, 3, result.status).astype(jnp.int32)
     return result._replace(
         status=status, converged=result.converged & ~cert.infeasible, certificate=cert

@@ -15,7 +15,17 @@ only applies the factors. Three strategies behind one interface
 * :class:`WoodburyKKT` ``(factored=True)`` -- the Woodbury parts kept, O(n r)
   per iteration and no O(n^2 r) forming: the cheaper one for r < n / 2 (the
   cruise example: one output, three or four inputs;
-  ``bench/bench_local_explicit.py`` and ``bench/bench_batched_layout.py``).
+  ``bench/bench_local_explicit.py`` and ``bench/bench_batched_layout.py``);
+* :class:`RiccatiKKT` -- no condensed matrix at all: K_j^-1 applied by the
+  backward Riccati recursion over the horizon and a backward and a forward
+  sweep per right-hand side (:mod:`~.riccati`), O(N_p (n_x^3 + U^3)) to
+  factorise against O((N_p U)^3), and the costs E_j built by sweeps of the
+  model instead of Y_u,j. Valid because every constraint row acts on one
+  step's inputs (Abar_j = I (x) A_in,j).
+
+Each strategy says whether it needs the condensed form (``condensed``: Y_u,j
+built by :func:`~.costs.padded_costs`) and how eq.opt_ro applies H_j^-1
+(``hinv``: ``"dense"``, ``"woodbury"`` or ``"riccati"``, :func:`~.rho.eq_opt_ro`).
 """
 
 from __future__ import annotations
@@ -26,13 +36,14 @@ from typing import Any
 import jax.numpy as jnp
 
 from ..problem.topology import Topology
+from . import riccati
 from .costs import PaddedCosts
 from .layout import padded_layout
 from .linalg import block_diag, spd_inverse_dense, woodbury_inverse, woodbury_parts
 
-__all__ = ["KKT_SOLVES", "DenseKKT", "WoodburyKKT", "select_kkt"]
+__all__ = ["KKT", "KKT_SOLVES", "DenseKKT", "RiccatiKKT", "WoodburyKKT", "select_kkt"]
 
-KKT_SOLVES = ("auto", "dense", "woodbury", "woodbury_factored")
+KKT_SOLVES = ("auto", "dense", "woodbury", "woodbury_factored", "riccati")
 """Names :func:`select_kkt` accepts."""
 
 
@@ -42,6 +53,8 @@ class DenseKKT:
 
     name: str = "dense"
     woodbury: bool = False  # H_j^-1 for eq.opt_ro: from the formed H_j
+    condensed: bool = True
+    hinv: str = "dense"
 
     def factor(self, c: PaddedCosts, rho_AtA: Any, horizon: int) -> Any:
         """(J, n, n) K_j^-1 from the costs (H formed) and the per-step rho_j A_in,j'A_in,j."""
@@ -62,6 +75,8 @@ class WoodburyKKT:
 
     factored: bool = True
     woodbury: bool = True  # H_j^-1 for eq.opt_ro: by the Woodbury identity too
+    condensed: bool = True
+    hinv: str = "woodbury"
 
     @property
     def name(self) -> str:
@@ -88,7 +103,29 @@ class WoodburyKKT:
         return blk - low
 
 
-def select_kkt(topology: Topology, name: str = "auto") -> DenseKKT | WoodburyKKT:
+@dataclass(frozen=True)
+class RiccatiKKT:
+    """K_j^-1 by the Riccati recursion over the horizon (:mod:`~.riccati`): the
+    factor is a :class:`~.riccati.RiccatiFactor`, an application one backward
+    and one forward sweep (no condensed matrix formed)."""
+
+    name: str = "riccati"
+    woodbury: bool = False
+    condensed: bool = False
+    hinv: str = "riccati"
+
+    def factor(self, c: PaddedCosts, rho_AtA: Any, horizon: int) -> Any:
+        return riccati.factor(c.A, c.Bu, c.Qx, c.BH + rho_AtA, horizon)
+
+    def apply(self, Kinv: Any, x: Any) -> Any:
+        """K_j^-1 x_j for x (J, n)."""
+        return riccati.solve(Kinv, x)
+
+
+KKT = DenseKKT | WoodburyKKT | RiccatiKKT
+
+
+def select_kkt(topology: Topology, name: str = "auto") -> KKT:
     """The KKT strategy ``name`` (one of :data:`KKT_SOLVES`) for ``topology``.
 
     ``"auto"``: Woodbury when every objective (padded) has at most half as
@@ -101,7 +138,7 @@ def select_kkt(topology: Topology, name: str = "auto") -> DenseKKT | WoodburyKKT
     """
     if name not in KKT_SOLVES:
         raise ValueError(f"kkt: expected one of {KKT_SOLVES}, got {name!r}")
-    if name != "auto" and name != "dense" and topology.singular_r:
+    if name in ("woodbury", "woodbury_factored") and topology.singular_r:
         names = [topology.agent_names[i] for i in topology.singular_r]
         raise ValueError(
             f"kkt: {name!r} needs every R_(i) positive definite; singular for {names} "
@@ -111,6 +148,8 @@ def select_kkt(topology: Topology, name: str = "auto") -> DenseKKT | WoodburyKKT
         return DenseKKT()
     if name in ("woodbury", "woodbury_factored"):
         return WoodburyKKT(factored=name == "woodbury_factored")
+    if name == "riccati":
+        return RiccatiKKT()
     lay = padded_layout(topology)
     r, n = max(lay.y_sizes), lay.cols.shape[1]
     if 2 * r > n or topology.singular_r:

@@ -19,6 +19,7 @@ import jax.scipy.linalg as jsl
 import numpy as np
 
 from ..problem.topology import Topology
+from . import riccati
 from .costs import PaddedCosts, unpad_matrix
 from .layout import padded_layout
 from .linalg import apply_blocks, eye_like, spd_inverse, spd_inverse_dense, woodbury_parts
@@ -29,6 +30,7 @@ __all__ = [
     "extreme_eigenvalues",
     "optimal_rho",
     "power_rho",
+    "power_rho_riccati",
     "power_rho_woodbury",
     "scaled_hessian",
 ]
@@ -46,19 +48,22 @@ def eq_opt_ro(
     *,
     method: str = "power",
     iterations: int = 8,
-    woodbury: bool = False,
+    hinv: str = "dense",
 ) -> Any:
     """(J,) eq.opt_ro's rho_j* for every objective of the padded layout.
 
     Parameters
     ----------
-    c : the padded costs (``c.H`` formed unless ``woodbury`` and the power method).
+    c : the padded costs (``c.H`` formed unless ``hinv`` is not "dense" and the power method).
     Ain : (J, R, U) per-step rows A_in,j in the layout; AtA : (J, U, U) A_in,j'A_in,j.
     own_rows : per objective, the positions of its own rows among the R (for the
         exact rank-deficient form).
     method : ``"power"`` or ``"eigh"`` (:data:`RHO_METHODS`).
     iterations : power-iteration steps.
-    woodbury : apply H_j^-1 by the Woodbury identity (no n x n matrix formed).
+    hinv : how the power iteration applies H_j^-1: ``"dense"`` (formed),
+        ``"woodbury"`` (the Woodbury identity, no n x n matrix formed) or
+        ``"riccati"`` (the Riccati recursion over the model, :func:`power_rho_riccati`;
+        ``c`` then needs no condensed form).
     """
     T = topology
     lay = padded_layout(T)
@@ -81,9 +86,16 @@ def eq_opt_ro(
             # its inverse finite and mu_min at about the eps * mu_max floor
             nj = jnp.asarray([N * u for u in lay.u_sizes], dt)
             um = jnp.asarray(lay.umask, dt)
-            tr = jnp.sum(c.Yu * (c.Q2 @ c.Yu), axis=(1, 2)) + N * jnp.einsum("jaa,ja->j", c.BH, um)
+            if hinv == "riccati":
+                gram = riccati.trace_gram(c.A, c.Bu, c.Qx, N)
+            else:
+                gram = jnp.sum(c.Yu * (c.Q2 @ c.Yu), axis=(1, 2))
+            tr = gram + N * jnp.einsum("jaa,ja->j", c.BH, um)
             delta = (jnp.finfo(dt).eps * tr / nj)[:, None, None]
-            if woodbury:
+            if hinv == "riccati":
+                BHd = c.BH + delta * jnp.eye(U, dtype=dt)
+                rho_full = power_rho_riccati(c, BHd, LamB, mask, iterations, N)
+            elif hinv == "woodbury":
                 BHd = c.BH + delta * jnp.eye(U, dtype=dt)
                 rho_full = power_rho_woodbury(c, BHd, LamB, mask, iterations, N)
             else:
@@ -255,6 +267,34 @@ def power_rho_woodbury(
         return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
 
     v = power_start(mask, c.Yu.dtype)
+    v = jax.lax.fori_loop(0, iterations, body, v)
+    rq = jnp.sum(v * Hx(v), -1) / jnp.sum(v * apply_blocks(LamB, v), -1)
+    return rho_from_quotients(rq)
+
+
+def power_rho_riccati(
+    c: PaddedCosts, BH: Any, LamB: Any, mask: Any, iterations: int, horizon: int
+) -> Any:
+    """:func:`power_rho` with H_j and H_j^-1 applied by sweeps of the model (:mod:`~.riccati`).
+
+    H x is a forward sweep from x_0 = 0 and an adjoint sweep back
+    (:func:`~.riccati.hessian_apply`); H^-1 y the Riccati solve with the
+    per-step block BH (no rho term). Neither Y_u,j nor any n x n matrix is
+    formed: O(N_p (n_x^2 + n_x U)) per product.
+    """
+    f = riccati.factor(c.A, c.Bu, c.Qx, BH, horizon)
+    Laminv = spd_inverse(LamB)
+
+    def Hx(x: Any) -> Any:
+        return riccati.hessian_apply(c.A, c.Bu, c.Qx, BH, x)
+
+    def body(_: Any, v: Any) -> Any:
+        up = apply_blocks(Laminv, Hx(v[:, :1]))  # Lambda^-1 H v
+        down = riccati.solve(f, apply_blocks(LamB, v[:, 1:]))  # H^-1 Lambda v
+        v = jnp.concatenate([up, down], axis=1)
+        return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
+
+    v = power_start(mask, c.E.dtype)
     v = jax.lax.fori_loop(0, iterations, body, v)
     rq = jnp.sum(v * Hx(v), -1) / jnp.sum(v * apply_blocks(LamB, v), -1)
     return rho_from_quotients(rq)

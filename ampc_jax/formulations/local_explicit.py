@@ -64,7 +64,7 @@ import numpy as np
 from ..admm.acceleration import anderson_memory
 from ..admm.costs import padded_costs
 from ..admm.feasibility import with_certificate
-from ..admm.kkt import KKT_SOLVES, DenseKKT, WoodburyKKT, select_kkt
+from ..admm.kkt import KKT, KKT_SOLVES, select_kkt
 from ..admm.layout import padded_layout
 from ..admm.params import DEFAULT_TOL, SolverParams, as_params, solver_params
 from ..admm.rho import eq_opt_ro
@@ -153,8 +153,9 @@ class LocalExplicit:
         above round-off (once converged to machine precision Anderson's least
         squares, and so the map, is no longer smooth).
     kkt : the KKT solve strategy of the local step, one of
-        ``"auto"`` (default), ``"dense"``, ``"woodbury"``, ``"woodbury_factored"``
-        (:func:`~ampc_jax.admm.kkt.select_kkt`; each wins at some size there).
+        ``"auto"`` (default), ``"dense"``, ``"woodbury"``, ``"woodbury_factored"``,
+        ``"riccati"`` (:func:`~ampc_jax.admm.kkt.select_kkt`; each wins at some
+        size there).
     rho_method : ``"power"`` (default): rho_j = ``params.rho[j]`` times eq.opt_ro's
         rho_j*, its extreme eigenvalues by ``rho_iterations`` steps of power
         iteration (within 10 % of the exact value on the tested problems);
@@ -231,7 +232,7 @@ class LocalExplicit:
         )
 
     @property
-    def kkt_solve(self) -> DenseKKT | WoodburyKKT:
+    def kkt_solve(self) -> KKT:
         """The KKT solve strategy in use (``kkt`` resolved for this topology)."""
         return select_kkt(self.topology, self.kkt)
 
@@ -256,8 +257,9 @@ class LocalExplicit:
         kkt = self.kkt_solve
         dt = data.A.dtype
         p = as_params(self.params(dtype=dt) if params is None else params, J, dt)
-        need_H = not kkt.woodbury or self.rho_method == "eigh" or not all(lay.full)
-        c = padded_costs(T, data, with_H=need_H)
+        # the formed H_j: for the dense solve, the exact rho and rank-deficient rows
+        need_H = kkt.hinv == "dense" or self.rho_method == "eigh" or not all(lay.full)
+        c = padded_costs(T, data, with_H=need_H, condensed=kkt.condensed or need_H)
         # each objective's R rows (lay.rows; a padded index reads a zero row)
         Aix = jnp.pad(data.Ain, ((0, 1), (0, 1)))  # padded row / column index -> 0
         Ain = Aix[lay.rows[:, :, None], lay.cols[:, None, :]]  # (J, R, U)
@@ -276,7 +278,7 @@ class LocalExplicit:
                 own,
                 method=self.rho_method,
                 iterations=self.rho_iterations,
-                woodbury=kkt.woodbury,
+                hinv=kkt.hinv,
             )
             rho = star * p.rho
         # K_j = H_j + rho_j I (x) A_in,j'A_in,j, all objectives in one batched

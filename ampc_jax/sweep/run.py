@@ -182,10 +182,19 @@ def git_commit() -> str:
     return r.stdout.strip() or "unknown"
 
 
+# The structured local solve for the explicit formulations: a sweep is a batch,
+# where the Riccati recursion's setup is 3.4x to 5x cheaper than the condensed
+# forms' at N_p = 10 and 20 (bench/bench_peers.py, docs/bench_peers.md).
+BATCH_KKT = {"local_explicit": "riccati", "integrated": "riccati"}
+
+
 def _solver(spec: SweepSpec, topology: Any) -> Any:
     from ..formulations import formulation
 
-    return formulation(spec.formulation, topology, max_iter=spec.max_iter, anderson=spec.anderson)
+    extra = {"kkt": BATCH_KKT[spec.formulation]} if spec.formulation in BATCH_KKT else {}
+    return formulation(
+        spec.formulation, topology, max_iter=spec.max_iter, anderson=spec.anderson, **extra
+    )
 
 
 def _tol(spec: SweepSpec, cases: StepCases) -> float:

@@ -191,6 +191,8 @@ PERTURBATIONS = (
         (3, False, "woodbury"),
         (2, True, "dense"),
         (2, True, "woodbury_factored"),
+        (2, False, "riccati"),
+        (3, True, "riccati"),
     ],
 )
 def test_matches_independent_integrated_qp(n_obj, singular_q, path):

@@ -258,7 +258,7 @@ def test_general_constraint_rows():
     np.testing.assert_allclose(res.u0, ref.u[0], rtol=1e-3, atol=1e-4)
 
 
-@pytest.mark.parametrize("kkt", ["dense", "woodbury_factored"])
+@pytest.mark.parametrize("kkt", ["dense", "woodbury_factored", "riccati"])
 def test_float32_matches_float64(kkt):
     p = random_problem(4, 2, shared="all")
     T = p.topology
@@ -388,7 +388,12 @@ def test_warm_state_shapes_are_checked():
 
 @pytest.mark.parametrize(
     "kkt,anderson",
-    [pytest.param("woodbury", 0, marks=SLOW), ("woodbury_factored", 0), ("woodbury_factored", 3)],
+    [
+        pytest.param("woodbury", 0, marks=SLOW),
+        ("woodbury_factored", 0),
+        ("woodbury_factored", 3),
+        ("riccati", 0),
+    ],
 )
 def test_fixed_iterations_gradient_matches_finite_differences(kkt, anderson):
     """d/d(reference) and d/d(rho_j) (rho_method="given": rho_j itself as data)
