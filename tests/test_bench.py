@@ -364,3 +364,55 @@ def test_bench_sweep(tmp_path):
     assert "--smoke" in doc["meta"]["command"], doc["meta"]
     assert set(doc["results"]) == {"throughput", "waste", "grad", "pencil"}, doc["results"]
     assert doc["results"]["grad"]["grad_over_forward"] > 0, doc["results"]["grad"]
+
+
+@pytest.mark.both_cores  # two XLA devices, two pinned peer processes, a pinned latency child
+@pytest.mark.timeout(150)
+def test_bench_peers(tmp_path):
+    """Both sections on the smallest sizes: N_p = 10, float64, the KKT solve "auto" picks,
+    one 6-step latency drive, batches of 1 and 10 drives of 3 steps, each peer once
+    (about 50 s on the shared 2-core machine, mostly compiling). proxsuite and qpax are
+    not required (the script skips a missing peer)."""
+    pytest.importorskip("daqp")
+    path = tmp_path / "peers.json"
+    out = run_bench("bench_peers.py", "--smoke", "--out", str(path), timeout=140)
+    assert "a general row is active at the reference solution in" in out, out
+    assert "| LE | tol (Nm^2) | worst error (Nm) | median error (Nm) |" in out, out
+    # latency: Local Explicit's full step and its parts, the condensing, DAQP alone and with it
+    assert (
+        "| contender | setting | median (us) | p99 (us) | worst error (Nm) | median error (Nm) "
+        "| iterations median / max |"
+    ) in out, out
+    lat = {r[0]: r for r in _rows(out, "") if len(r) == 7 and r[0] != "contender"}
+    full = [k for k in lat if k.startswith("LE ") and k.endswith("full step")]
+    assert len(full) == 1, out
+    for name in (
+        *full,
+        full[0].replace("full step", "setup alone"),
+        full[0].replace("full step", "iterations alone"),
+        "condensing (jitted condensed_qp, to numpy)",
+        "DAQP update + solve",
+        "DAQP + condensing (one call)",
+    ):
+        assert float(lat[name][2]) > 0 and float(lat[name][3]) > 0, lat.get(name, out)
+    assert float(lat["DAQP update + solve"][4]) < 1e-2, lat  # worst error (Nm)
+    assert any(
+        line.startswith(("PASS latency N_p=10", "MISS latency N_p=10")) for line in out.splitlines()
+    )
+    # throughput: steps/s of every contender, ratios to DAQP's solve alone
+    assert "| cases | contender | steps/s | / DAQP solve | / (DAQP + condensing) |" in out, out
+    thr = {(r[0], r[1]): r for r in _rows(out, "1") if len(r) == 5}
+    for B in ("1", "10"):
+        assert thr[B, "DAQP solve"][3] == "1.00", thr
+        le = [k for k in thr if k[0] == B and k[1].startswith("LE ") and "setup" not in k[1]]
+        assert len(le) == 1 and float(thr[le[0]][2].replace(",", "")) > 0, thr
+    assert "| contender | data + setup | full step | setup share | iterations mean |" in out, out
+    assert "| contender | cases | XLA flops a call | GFLOP/s (XLA) | % of peak |" in out, out
+    assert "NOT RUN throughput N_p=10, 1,000 cases" in out, out
+    doc = json.loads(path.read_text())
+    assert "--smoke" in doc["meta"]["command"], doc["meta"]
+    res = doc["results"]
+    assert {"calibration", "latency", "throughput"} <= set(res), set(res)
+    assert res["latency"]["10"]["target"]["verdict"] in ("PASS", "MISS"), res["latency"]
+    assert res["throughput"]["10"]["accuracy"]["DAQP"]["err_max"] < 1e-2, res["throughput"]
+    assert res["throughput"]["peak_flops"]["float64"] > 0, res["throughput"]
