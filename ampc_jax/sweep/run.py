@@ -182,9 +182,11 @@ def git_commit() -> str:
     return r.stdout.strip() or "unknown"
 
 
-# The structured local solve for the explicit formulations: a sweep is a batch,
-# where the Riccati recursion's setup is 3.4x to 5x cheaper than the condensed
-# forms' at N_p = 10 and 20 (bench/bench_peers.py, docs/bench_peers.md).
+# The structured local solve for the explicit formulations: a sweep vmaps a
+# batch of single steps, where the Riccati recursion's setup is 3.4x to 5x
+# cheaper than the condensed forms' at N_p = 10 and 20 and its iterations are
+# cheaper too (docs/bench_peers.md, "Where the cost goes"). Drives scanned in
+# chunks of 32 favour woodbury_factored instead (bench/bench_peers.py).
 BATCH_KKT = {"local_explicit": "riccati", "integrated": "riccati"}
 
 
