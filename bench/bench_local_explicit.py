@@ -152,8 +152,9 @@ def drive(n: int, seed: int = 0) -> dict[str, np.ndarray]:
     }
 
 
-def make_data_of(T: Topology, settings: CruiseSettings):
-    """op (one operating point) -> the step's ProblemData (jittable)."""
+def make_data_of(T: Topology, settings: CruiseSettings, **rows):
+    """op (one operating point) -> the step's ProblemData (jittable); ``rows``: general
+    rows ``G``, ``g`` passed on to make_data (bench_peers.py)."""
 
     def data_of(op):
         z4 = jnp.zeros(4)
@@ -183,6 +184,7 @@ def make_data_of(T: Topology, settings: CruiseSettings):
             R=settings.R(),
             lb=m.lb,
             ub=m.ub,
+            **rows,
         )
         return jax.tree.map(lambda x: jnp.asarray(x, op["v_x"].dtype), data)
 

@@ -158,10 +158,9 @@ jax.config.update("jax_enable_x64", True)
 from ampc_jax.admm import kkt as kkt_module  # noqa: E402
 from ampc_jax.batch import map_scenarios  # noqa: E402
 from ampc_jax.formulations import LocalExplicit  # noqa: E402
-from ampc_jax.problem import CondensedQP, Topology, condensed_qp, make_data  # noqa: E402
+from ampc_jax.problem import CondensedQP, Topology, condensed_qp  # noqa: E402
 from ampc_jax.reference import clarabel_solve  # noqa: E402
-from ampc_jax.vehicle import CRUISE, CruiseSettings, Measurement  # noqa: E402
-from ampc_jax.vehicle.cruise import cruise_control_model  # noqa: E402
+from ampc_jax.vehicle import CRUISE, CruiseSettings  # noqa: E402
 
 STEM = "bench_peers"
 SECTIONS = ("latency", "throughput")
@@ -230,42 +229,8 @@ def topology(horizon: int) -> Topology:
 
 def make_data_of(T: Topology, settings: CruiseSettings) -> Any:
     """op (one operating point) -> the step's ProblemData with the general rows (jittable),
-    in the operating point's dtype (bench_local_explicit.make_data_of plus G, g)."""
-
-    def data_of(op: dict) -> Any:
-        z4 = jnp.zeros(4)
-        meas = Measurement(
-            v_x=op["v_x"],
-            v_y=op["v_y"],
-            yaw_rate=op["r"],
-            omega=z4,
-            F_x=z4,
-            F_y=op["F_y"],
-            F_z=z4,
-            slip=z4,
-            slip_angle=z4,
-            a_x=0.0 * op["v_x"],
-            a_y=0.0 * op["v_x"],
-        )
-        m = cruise_control_model(meas, op["steer"], op["v_ref"], 1.0, ble.PARAMS, settings)
-        data = make_data(
-            T,
-            A=m.A,
-            B=m.B,
-            w=m.w,
-            x0=m.x0,
-            C=ble.C_ROWS,
-            Q=settings.Q(),
-            ref=m.ref,
-            R=settings.R(),
-            lb=m.lb,
-            ub=m.ub,
-            G=G_ROWS,
-            g=G_RHS,
-        )
-        return jax.tree.map(lambda x: jnp.asarray(x, op["v_x"].dtype), data)
-
-    return data_of
+    in the operating point's dtype."""
+    return ble.make_data_of(T, settings, G=G_ROWS, g=G_RHS)
 
 
 def problem(horizon: int) -> tuple[Topology, Any]:
