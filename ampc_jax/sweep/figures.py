@@ -7,6 +7,13 @@
   iterations among its converged points; ties to the one nearest rho*)
   against rho*, with the share of cases whose best point is the grid point
   nearest rho*.
+
+Both rho axes are logarithmic with plain-number labels: at the grid's own
+points when the grid has at most ``TICKED_POINTS`` of them (a closed-loop
+sweep's few points), else at the decades; minor ticks carry no label (their
+default ``2 x 10^-1`` labels overlap on axes spanning one or two decades).
+A loop sweep's ``iterations`` column is the mean per control step, and its
+axis says so.
 """
 
 from __future__ import annotations
@@ -16,7 +23,24 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["best_rho", "iteration_quantiles", "sweep_figures"]
+__all__ = ["TICKED_POINTS", "best_rho", "iteration_quantiles", "log_rho_axis", "sweep_figures"]
+
+TICKED_POINTS = 9  # grids up to this size get a labelled tick at every point
+
+
+def log_rho_axis(ax: Any, r: np.ndarray) -> None:
+    """Log rho axis, labelled with plain numbers: every grid point of a small
+    grid, the decades of a large one; no labels on minor ticks."""
+    from matplotlib.ticker import FixedLocator, FuncFormatter, LogLocator, NullFormatter
+
+    ax.set_xscale("log")
+    plain = FuncFormatter(lambda v, _: f"{v:.3g}")
+    if 0 < r.size <= TICKED_POINTS:
+        ax.xaxis.set_major_locator(FixedLocator(r))
+    else:
+        ax.xaxis.set_major_locator(LogLocator(base=10.0))
+    ax.xaxis.set_major_formatter(plain)
+    ax.xaxis.set_minor_formatter(NullFormatter())
 
 
 def iteration_quantiles(table: Any, q: tuple[float, ...] = (5, 25, 50, 75, 95)) -> dict:
@@ -62,9 +86,10 @@ def sweep_figures(table: Any, out: str | Path) -> list[Path]:
     ax.fill_between(r, qs[25], qs[75], alpha=0.35, color="C0", label="25-75 %")
     ax.plot(r, qs[50], "o-", color="C0", label="median")
     ax.axvline(1.0, color="C3", ls="--", lw=1.2, label="eq.opt_ro rho* (scale 1)")
-    ax.set_xscale("log")
+    log_rho_axis(ax, r)
     ax.set_xlabel("rho scale (factor on eq.opt_ro's rho_j*)")
-    ax.set_ylabel("iterations to tolerance")
+    loops = "iterations_max" in table.column_names  # a loop sweep's rows: LoopRow
+    ax.set_ylabel("iterations per control step, mean" if loops else "iterations to tolerance")
     n_cases = len(np.unique(table.column("case").to_numpy()))
     ax.set_title(f"{meta_fam}: {n_cases} cases")
     ax.legend(fontsize=8)
@@ -82,7 +107,7 @@ def sweep_figures(table: Any, out: str | Path) -> list[Path]:
         bins = np.r_[r[0] / 1.5, edges, r[-1] * 1.5] if r.size > 1 else 3
         ax.hist(ok, bins=bins, color="C2", edgecolor="k")
     ax.axvline(1.0, color="C3", ls="--", lw=1.2, label="eq.opt_ro rho*")
-    ax.set_xscale("log")
+    log_rho_axis(ax, r)
     star = float(r[np.argmin(np.abs(np.log(r)))])  # the grid point nearest rho*
     at_star = float(np.mean(np.isclose(ok, star))) if ok.size else float("nan")
     ax.set_xlabel("each case's best rho scale")

@@ -1,5 +1,6 @@
 """ampc_jax.io.figures on short closed-loop runs (Agg backend, nothing shown)."""
 
+import dataclasses
 import warnings
 
 import numpy as np
@@ -97,3 +98,56 @@ def test_yaw_error_comparison_of_runs_before_the_focus_window_is_quiet(runs):
         warnings.simplefilter("error")
         fig = figures.yaw_error_comparison(list(runs))
     figures.plt.close(fig)
+
+
+def _legend_texts(ax):
+    legend = ax.get_legend()
+    return [t.get_text() for t in legend.get_texts()] if legend is not None else []
+
+
+def test_convergence_legend_names_the_formulations_in_words(runs):
+    """The iterations panel's legend names the controller and its integrated peer
+    as the paper does, not by class name (it read "IntegratedADMM")."""
+    res = runs[0]
+    n = len(res.log.t)
+    timed = dataclasses.replace(
+        res,
+        timing={"r_time": np.linspace(0.8, 1.2, n), "integrated_iterations": np.full(n, 7)},
+    )
+    fig = figures.convergence(timed)
+    try:
+        texts = [t for ax in fig.axes for t in _legend_texts(ax)]
+        assert texts == ["Local Explicit", "integrated MPC (same ADMM)"]
+    finally:
+        figures.plt.close(fig)
+
+
+def _as_stability(res, slip_peak):
+    """A run drawn as a stability run (a finite omega_ref) whose rear slip peaks at
+    ``slip_peak``; the rest of its log is the cruise run's."""
+    lg = res.log
+    slip = np.array(lg.slip, float)
+    slip[len(slip) // 2, 2] = slip_peak
+    return dataclasses.replace(
+        res, log=lg._replace(omega_ref=np.asarray(lg.v_x) / 0.351, slip=slip)
+    )
+
+
+def test_rear_slip_beyond_the_panel_is_named_in_it(runs):
+    """Stability runs' slip panel keeps the controlled run's scale (+-1); a run
+    beyond it (the driver alone reaches about 30) is named with its peak, and a
+    panel with nothing clipped carries no note."""
+    ctrl, spin = _as_stability(runs[0], 0.12), _as_stability(runs[1], -29.8)
+    fig = figures.vehicle_response([ctrl, spin], labels=["VSC+WSC", "driver alone"])
+    try:
+        ax = fig.axes[2]
+        assert ax.get_ylabel() == "rear slip ratio (-)"
+        assert ax.get_ylim() == (-figures.SLIP_SCALE, figures.SLIP_SCALE)
+        assert [t.get_text() for t in ax.texts] == ["off scale: driver alone up to 29.8"]
+    finally:
+        figures.plt.close(fig)
+    fig = figures.vehicle_response([ctrl], labels=["VSC+WSC"])
+    try:
+        assert len(fig.axes[2].texts) == 0
+    finally:
+        figures.plt.close(fig)
