@@ -11,6 +11,7 @@ both runs in the figures. ``ampc demo`` is ``ampc simulate cruise_lane_change
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -79,6 +80,25 @@ def _bar(total: int, quiet: bool) -> Any:
     )
 
 
+def _note(text: str, quiet: bool) -> None:
+    """One progress line on stderr (not with ``--quiet``): the compile of a closed
+    loop takes seconds, and without a terminal no bar shows that it started."""
+    if not quiet:
+        from tqdm import tqdm
+
+        tqdm.write(text, file=sys.stderr)  # above a bar on a terminal, not through it
+        sys.stderr.flush()
+
+
+def _ran(res: Any) -> str:
+    """What a compiled closed loop took: its compile and its (warm) run."""
+    wall = res.wall_time
+    speed = f" ({res.duration / wall:.0f}x real time)" if wall > 0 else ""
+    return (
+        f"compiled in {res.compile_time:.1f} s; {res.duration:g} s simulated in {wall:.2f} s{speed}"
+    )
+
+
 def _replay(cfg: Any, log: Any, repeats: int, quiet: bool) -> dict:
     """:func:`~ampc_jax.closed_loop.replay_timing` with a bar over the replayed steps."""
     from tqdm import tqdm
@@ -120,16 +140,23 @@ def _run(
     bar = _bar(5 if base_cfg else 4, quiet)
     bar.set_description("compile + run closed loop")
     dtype = jnp.float32 if float32 else jnp.float64
+    _note("compiling the closed loop ...", quiet)
     res = simulate(spec, cfg, duration=duration, mu=mu, dtype=dtype)
+    _note(_ran(res), quiet)
     bar.update(1)
     base = None
     if base_cfg is not None:
         bar.set_description("baseline: compile + run")
+        _note("compiling the baseline's closed loop ...", quiet)
         base = simulate(spec, base_cfg, duration=duration, mu=mu, dtype=dtype)
+        _note("baseline: " + _ran(base), quiet)
         bar.update(1)
     bar.set_description("replay timing (r_time)")
     if timing:
+        _note(f"replaying {len(res.log.t)} control steps for r_time (eq.t_ratio) ...", quiet)
+        t0 = time.perf_counter()
         res.timing = _replay(cfg, jax.tree.map(jnp.asarray, res.log), repeats, quiet)
+        _note(f"replayed in {time.perf_counter() - t0:.1f} s", quiet)
     bar.update(1)
     bar.set_description("write csv/json")
     write_run(res, out)
