@@ -2,7 +2,7 @@
 
 X = [v_x, v_y, yaw rate]; agents DTR (drive torque, rear axle), RTV (rear
 torque vectoring), FDB (front differential braking, two wheels); objectives
-LST (longitudinal speed tracking, C = [1, 0, 0]: NOTES item 1, printed
+LST (longitudinal speed tracking, C = [1, 0, 0]: paper-notes item 1, printed
 swapped) and YRT (yaw-rate tracking, C = [0, 0, 1]); FDB is shared
 (fig_example_1). The steering STR is a disturbance. Deviations from the
 printed model: :mod:`ampc_jax.vehicle.models`.
@@ -80,7 +80,7 @@ class CruiseSettings(ExampleSettings):
     dtr_max: float = REAR_MAX_NM  # Nm, |T_DTR| bound (1000 per rear wheel)
     rtv_max: float = REAR_MAX_NM / 2  # Nm, |T_RTV| bound
     fdb_max: float = -FRONT_MIN_NM  # Nm, FDB brakes in [-fdb_max, 0]
-    literal: bool = False  # True: paper's literal W_d (NOTES item 9)
+    literal: bool = False  # True: paper's literal W_d (paper-notes item 9)
 
     def Q(self) -> tuple[Array, ...]:
         """Per-objective weights Q_j in CRUISE_OBJECTIVES order, shapes (1, 1), (1, 1)."""
@@ -129,7 +129,7 @@ def cruise_control_model(
         Road friction for the yaw-rate reference's limit.
     params, settings
         Vehicle data and settings; ``settings.literal`` selects the paper's W_d
-        (NOTES item 9), else the operating-point-exact affine form.
+        (paper-notes item 9), else the operating-point-exact affine form.
 
     Returns
     -------
@@ -154,8 +154,8 @@ def cruise_control_model(
     sx, sy, sr = str_rows(delta, p)
     B_str = dt * jnp.stack([sx, sy, sr]).astype(dtype)
     w_paper = B_str @ meas.F_y.astype(dtype)
-    # NOTES item 9: A applied to the absolute state gives dt*(2 r v_y, -2 r v_x) for
-    # the coupling terms; subtract one copy so the model is exact at X^(0).
+    # paper-notes item 9: A applied to the absolute state gives dt*(2 r v_y, -2 r v_x)
+    # for the coupling terms; subtract one copy so the model is exact at X^(0).
     w_fix = dt * jnp.stack([-r * vy, r * vx, 0 * r]).astype(dtype)
     w = w_paper + jnp.where(s.literal, 0.0, 1.0) * w_fix
 

@@ -12,40 +12,41 @@ vmappable, keeping the measurement's dtype). The examples themselves are
 
 Deviations from the printed paper
 ---------------------------------
-Each item refers to ``/work/shared/paper/NOTES.md``; ``docs/vehicle.md`` gives
-the reasoning and ``tests/vehicle/`` pins every choice.
+Each is an item of ``docs/paper-notes.md`` (numbered there; "item N" below);
+``docs/vehicle.md`` gives the reasoning and ``tests/vehicle/`` pins every choice.
 
-1. (NOTES 1) ``C_LST = [1, 0, 0]`` and ``C_YRT = [0, 0, 1]``: the printed
+1. (item 1) ``C_LST = [1, 0, 0]`` and ``C_YRT = [0, 0, 1]``: the printed
    eq.CC_objective swaps them.  Always corrected (no literal reading exists:
    the printed pair would track a speed reference with the yaw rate).
-2. (NOTES 2) ``I_w`` is a wheel inertia of 1.6 kg m^2, not a track width.
-3. (NOTES 3) RTV yaw entry of eq.VSC_system is ``dt T_w / (I_z R_w)`` (same
+2. (item 2) ``I_w`` is a wheel inertia of 1.6 kg m^2, not a track width.
+3. (item 3) RTV yaw entry of eq.VSC_system is ``dt T_w / (I_z R_w)`` (same
    moment balance as eq.CC_system); ``T_z`` is undefined in the paper.
-4. (NOTES 4) The wheel-speed reference is an angular speed,
+4. (item 4) The wheel-speed reference is an angular speed,
    ``omega_ref = v_x (1 + S) / R_w`` with ``S = +S_x,des`` while the driver
-   drives (``T_DTR >= 0``) and ``S = -S_x,des`` while the driver brakes
-   (``T_DTR < 0``): the desired braking slip is negative.
-5. (NOTES 9) eq.CC_system's A_d holds the Jacobian of the body-frame coupling
+   drives (``T_DTR > 0``), ``S = -S_x,des`` while the driver brakes
+   (``T_DTR < 0``: the desired braking slip is negative) and ``S = 0`` without
+   driver torque.
+5. (item 9) eq.CC_system's A_d holds the Jacobian of the body-frame coupling
    terms (``v_x' = r v_y``, ``v_y' = -r v_x``) but is applied to the absolute
    state, which doubles those terms.  The *corrected* form adds
    ``dt [-r0 v_y0, +r0 v_x0, 0]`` to W_d so the one-step prediction is exact at
    the operating point (it is the first-order Taylor model).  The *literal*
    form (``settings.literal=True``) keeps the paper's W_d = B_STR U_STR.
-6. eq.VSC_system's wheel rows omit the tyre's reaction ``-R_w F_x`` on the
-   wheel (``I_w omega' = T - R_w F_x``), so the literal model predicts that any
-   driving torque accelerates the wheel without bound and WSC would cancel the
-   driver's torque even without slip.  The *corrected* form adds
+6. (item 20) eq.VSC_system's wheel rows omit the tyre's reaction ``-R_w F_x``
+   on the wheel (``I_w omega' = T - R_w F_x``), so the literal model predicts
+   that any driving torque accelerates the wheel without bound and WSC would
+   cancel the driver's torque even without slip.  The *corrected* form adds
    ``-dt R_w F_x,est / I_w`` per rear wheel to W_d, with the measured
    (estimated) longitudinal tyre forces held over the horizon, the same way the
    paper holds the lateral forces F_y in B_STR U_STR.  The literal form
    (``settings.literal=True``) keeps W_d = B_DTR T_DTR + B_STR U_STR.
-7. (NOTES 11) TCR's bound [0, T_DTR] moves with the driver torque every step.
+7. (item 11) TCR's bound [0, T_DTR] moves with the driver torque every step.
    When the driver brakes (T_DTR < 0) the printed interval is empty; TCR then
    lies in [T_DTR, 0], i.e. it may only reduce the *magnitude* of the driver's
    rear-axle torque towards zero (``bounds = [min(0, T), max(0, T)]``).
-8. The printed text of eq.CC_system_1 calls T_FDB-L "the right-front" torque;
-   the matrix B_d(FDB) (first column uses delta_FL and -T_w) puts it on the
-   left front.  U_FDB = [T_FL, T_FR].
+8. (item 21) The printed text of eq.CC_system_1 calls T_FDB-L "the right-front"
+   torque; the matrix B_d(FDB) (first column uses delta_FL and -T_w) puts it on
+   the left front.  U_FDB = [T_FL, T_FR].
 """
 
 from __future__ import annotations

@@ -36,7 +36,7 @@ class VehicleParams(NamedTuple):
     """Vehicle and tyre data (table_param plus what the plant needs).
 
     The first eight fields are Table I of the paper.  ``I_w`` is read as a wheel
-    inertia (NOTES item 2).  The rest are choices for the stand-in plant
+    inertia (paper-notes item 2).  The rest are choices for the stand-in plant
     (``ampc_jax.vehicle.plant``), typical of a large rear-wheel-drive sedan; see
     ``docs/vehicle.md``.
 
@@ -57,7 +57,7 @@ class VehicleParams(NamedTuple):
     R_w: float = 0.351  # m, effective wheel radius
     K_us: float = 0.005  # s^2/m, *desired* understeer gradient (yaw reference)
     T_w: float = 1.66  # m, track width
-    I_w: float = 1.6  # kg m^2, wheel spin inertia (NOTES item 2)
+    I_w: float = 1.6  # kg m^2, wheel spin inertia (paper-notes item 2)
     h_cg: float = 0.55  # m, CG height (load transfer)
     g: float = 9.81  # m/s^2
     B_x: float = 14.0  # longitudinal MF stiffness factor

@@ -96,7 +96,7 @@ class StabilitySettings(ExampleSettings):
 def wheel_speed_reference(
     v_x: Array, driver_torque: Array, params: VehicleParams, slip_des: float = 0.15
 ) -> Array:
-    """Rear wheel-speed reference of eq.VSC_objective (NOTES item 4), shape (2,).
+    """Rear wheel-speed reference of eq.VSC_objective (paper-notes item 4), shape (2,).
 
     ``omega_ref = v_x (1 + S) / R_w`` with ``S = +slip_des`` when the driver
     drives (``T_DTR > 0``), ``S = -slip_des`` when the driver brakes
@@ -111,7 +111,8 @@ def wheel_speed_reference(
 def stability_bounds(
     driver_torque: Array, settings: StabilitySettings
 ) -> tuple[tuple[Array, ...], ...]:
-    """Per-agent bounds of the stability example (NOTES item 11), STABILITY_AGENTS order.
+    """Per-agent bounds of the stability example (paper-notes item 11), in
+    STABILITY_AGENTS order.
 
     TCR: ``[min(0, T_DTR), max(0, T_DTR)]`` -- the printed ``[0, T_DTR]`` while the
     driver drives; while the driver brakes TCR may only reduce the braking
@@ -149,7 +150,7 @@ def stability_control_model(
         Driver's front road-wheel angle (rad).
     driver_torque : Array, shape ()
         Driver's rear-axle torque T_DTR (Nm, split equally on RL/RR); a
-        disturbance in W_d and the moving TCR bound (NOTES item 11).
+        disturbance in W_d and the moving TCR bound (paper-notes item 11).
     mu : Array, shape ()
         Road friction for the yaw-rate reference.
     params, settings
@@ -174,7 +175,7 @@ def stability_control_model(
     B_tcr = jnp.array([[0.0], [0.0], [-k], [-k]], dtype)
     B_rtv = jnp.array(
         [[0.0], [dt * p.T_w / (p.I_z * p.R_w)], [-dt / p.I_w], [dt / p.I_w]], dtype
-    )  # NOTES item 3
+    )  # paper-notes item 3
     _, fy, fr = fdb_columns(delta, p)
     zeros2 = jnp.zeros(2, dtype)
     B_fdb = dt * jnp.stack([fy, fr, zeros2, zeros2]).astype(dtype)
