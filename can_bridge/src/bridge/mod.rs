@@ -1,0 +1,237 @@
+//! The running bridge, by concept: its configuration (here), the state the
+//! threads and the caller share ([`shared`]), the transmit loop ([`tx`]), the
+//! receive loop and the received state ([`rx`]), the counters ([`stats`]) and
+//! the start/stop life cycle ([`lifecycle`]). No thread ever needs the GIL;
+//! the Python thread touches the shared state only through short critical
+//! sections.
+
+mod lifecycle;
+mod rx;
+mod shared;
+mod stats;
+mod tx;
+
+pub use lifecycle::{set_realtime, Bridge};
+pub use rx::{run_rx, RxStore, VehicleState, RX_NAMES};
+pub use shared::{Shared, SEQ_LIMIT, SEQ_MAX_STEP};
+pub use stats::Stats;
+pub use tx::{run_tx, TransportState, TxCounters, TxParams};
+
+use crate::channel::ChannelSpec;
+use crate::e2e;
+use crate::error::{clip, Error, Result};
+use crate::safety::SafetyConfig;
+use std::path::PathBuf;
+use std::sync::{Mutex, MutexGuard};
+
+/// What the bridge does when its transport is lost.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum OnTransportLoss {
+    /// Report it in `stats()` (`transport_state`, `safety_state` "lost").
+    Report,
+    /// Also raise `TransportError` from `set_command` while it lasts.
+    Raise,
+}
+
+/// Everything a bridge is configured with.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BridgeConfig {
+    /// Channel string (see [`ChannelSpec`]).
+    pub channel: String,
+    /// Tick period, ns.
+    pub period_ns: u64,
+    /// Limits and watchdog.
+    pub safety: SafetyConfig,
+    /// A message is invalid without a usable frame for this long, ns.
+    pub state_timeout_ns: u64,
+    /// The transport is reported lost when no frame has reached it (written
+    /// and taken by the peer) for this long, ns.
+    pub transport_timeout_ns: u64,
+    /// Report or raise on a lost transport.
+    pub on_transport_loss: OnTransportLoss,
+    /// candump log of every frame sent and received.
+    pub log_path: Option<PathBuf>,
+    /// Replace an existing `log_path` (never through a symbolic link).
+    pub log_overwrite: bool,
+    /// CAN bit rate requested from SLCAN adapters.
+    pub bitrate: u32,
+    /// Zero-torque frames sent on stop once the output is released (>= 1).
+    pub stop_safe_frames: u32,
+    /// Largest alive-counter step still in sequence (AUTOSAR MaxDeltaCounter).
+    pub rx_max_counter_delta: u8,
+    /// In-sequence frames that confirm a (re)anchored counter (SyncCounter).
+    pub rx_sync_frames: u8,
+    /// Strikes allowed among a message's last 16 frames.
+    pub rx_max_strikes: u32,
+    /// Tick records kept for `tick_trace` (allocated at start).
+    pub trace_capacity: usize,
+    /// Run the transmit thread under `SCHED_FIFO` at this priority (1..=99);
+    /// needs CAP_SYS_NICE or root. `None`: the default scheduler.
+    pub rt_priority: Option<i32>,
+}
+
+impl BridgeConfig {
+    /// The defaults of the shipped `vehicle.toml` for `channel`.
+    pub fn new(channel: &str) -> Self {
+        BridgeConfig {
+            channel: channel.to_string(),
+            period_ns: 50_000_000,
+            safety: SafetyConfig::default(),
+            state_timeout_ns: 250_000_000,
+            transport_timeout_ns: 250_000_000,
+            on_transport_loss: OnTransportLoss::Report,
+            log_path: None,
+            log_overwrite: false,
+            bitrate: 500_000,
+            stop_safe_frames: 3,
+            rx_max_counter_delta: 2,
+            rx_sync_frames: 2,
+            rx_max_strikes: 2,
+            trace_capacity: 0,
+            rt_priority: None,
+        }
+    }
+
+    /// Check every setting against its bounds; returns the parsed channel.
+    pub fn validate(&self) -> Result<ChannelSpec> {
+        let spec = ChannelSpec::parse(&self.channel)?;
+        let ms = |ns: u64| ns as f64 / 1e6;
+        if !(1_000_000..=1_000_000_000).contains(&self.period_ns) {
+            return Err(Error::Config(format!(
+                "period_ms = {} must be between 1 and 1000",
+                ms(self.period_ns)
+            )));
+        }
+        self.safety.validate(self.period_ns)?;
+        if !(1_000_000..=5_000_000_000).contains(&self.state_timeout_ns) {
+            return Err(Error::Config(format!(
+                "state_timeout_ms = {} must be between 1 and 5000",
+                ms(self.state_timeout_ns)
+            )));
+        }
+        if !(self.period_ns..=10_000_000_000).contains(&self.transport_timeout_ns) {
+            return Err(Error::Config(format!(
+                "transport_timeout_ms = {} must be between period_ms ({}) and 10000",
+                ms(self.transport_timeout_ns),
+                ms(self.period_ns)
+            )));
+        }
+        if !(1..=100).contains(&self.stop_safe_frames) {
+            return Err(Error::Config(format!(
+                "stop_safe_frames = {} must be in 1..=100",
+                self.stop_safe_frames
+            )));
+        }
+        if !(1..=e2e::MAX_COUNTER).contains(&self.rx_max_counter_delta) {
+            return Err(Error::Config(
+                "rx_max_counter_delta must be in 1..=14".into(),
+            ));
+        }
+        if !(1..=e2e::MAX_COUNTER).contains(&self.rx_sync_frames) {
+            return Err(Error::Config("rx_sync_frames must be in 1..=14".into()));
+        }
+        if self.rx_max_strikes > e2e::WINDOW {
+            return Err(Error::Config("rx_max_strikes must be in 0..=16".into()));
+        }
+        if self.trace_capacity > 10_000_000 {
+            return Err(Error::Config(
+                "trace_capacity must be at most 10,000,000".into(),
+            ));
+        }
+        if let Some(p) = self.rt_priority {
+            if !(1..=99).contains(&p) {
+                return Err(Error::Config(format!(
+                    "rt_priority = {p} must be in 1..=99"
+                )));
+            }
+        }
+        Ok(spec)
+    }
+}
+
+/// Lock a mutex, recovering from poisoning (a panicked holder leaves data
+/// that is still consistent: every critical section only copies or counts).
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// `clip` re-exported for the pyo3 layer's messages.
+pub fn clip_input(s: &str) -> String {
+    clip(s)
+}
+
+/// Settings the tests of every part of the bridge share.
+#[cfg(test)]
+mod testutil {
+    use super::BridgeConfig;
+    use crate::safety::{LimitRule, SafetyConfig, WheelLimits};
+
+    pub const MS: u64 = 1_000_000;
+
+    fn wheel(lim: f64) -> WheelLimits {
+        WheelLimits {
+            min_nm: -lim,
+            max_nm: lim,
+            rise_nm_per_s: 200.0,
+            release_nm_per_s: 200.0,
+        }
+    }
+
+    /// +-100 Nm on every wheel at 200 Nm/s (10 Nm per 50 ms tick), watchdog
+    /// 120 / 300 / 1000 ms.
+    pub fn config() -> BridgeConfig {
+        let mut c = BridgeConfig::new("slcan-pty:");
+        c.safety = SafetyConfig {
+            wheels: [wheel(100.0); 4],
+            safe_release_nm_per_s: 400.0,
+            limit_rule: LimitRule::Clamp,
+            hold_after_ns: 120 * MS,
+            safe_after_ns: 300 * MS,
+            fault_after_ns: 1000 * MS,
+        };
+        c
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::testutil::{config, MS};
+    use super::*;
+
+    #[test]
+    fn config_validation_names_the_setting() {
+        let c = config();
+        assert!(c.validate().is_ok());
+        for (f, want) in [
+            (
+                Box::new(|c: &mut BridgeConfig| c.period_ns = 0) as Box<dyn Fn(&mut BridgeConfig)>,
+                "period_ms",
+            ),
+            (
+                Box::new(|c: &mut BridgeConfig| c.period_ns = 5_000 * MS),
+                "period_ms",
+            ),
+            (
+                Box::new(|c: &mut BridgeConfig| c.stop_safe_frames = 0),
+                "stop_safe_frames",
+            ),
+            (
+                Box::new(|c: &mut BridgeConfig| c.state_timeout_ns = 3_600_000 * MS),
+                "state_timeout_ms",
+            ),
+            (
+                Box::new(|c: &mut BridgeConfig| c.transport_timeout_ns = MS),
+                "transport_timeout_ms",
+            ),
+        ] {
+            let mut c = config();
+            f(&mut c);
+            let e = c.validate().unwrap_err().to_string();
+            assert!(e.contains(want), "{e}");
+        }
+        assert!(matches!(
+            Bridge::new(BridgeConfig::new("nope:")),
+            Err(Error::Config(_))
+        ));
+    }
+}

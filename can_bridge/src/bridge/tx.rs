@@ -1,0 +1,498 @@
+//! The transmit loop: one frame per absolute deadline, the watchdog and the
+//! limiter, the age rule's outcome per tick and the transport's health.
+
+use super::{lock, Shared};
+use crate::candump::{Dir, LogSender};
+use crate::codec::{encode_torque_cmd, Mode};
+use crate::e2e;
+use crate::safety::{Safety, SafetyConfig};
+use crate::scheduler::{realtime_ns, Clock, Schedule, TickRecord, TickStats};
+use crate::transport::{Health, Sink, Written};
+use std::sync::atomic::Ordering;
+
+/// State of the transport as the transmit thread sees it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TransportState {
+    /// Frames reach the peer.
+    Up,
+    /// An SLCAN pty peer has not opened the channel (nothing to lose yet).
+    NotOpen,
+    /// Nothing has reached the peer for `transport_timeout`, or the link broke.
+    Lost,
+}
+
+impl TransportState {
+    /// Name in `stats()`.
+    pub fn name(self) -> &'static str {
+        match self {
+            TransportState::Up => "up",
+            TransportState::NotOpen => "not_open",
+            TransportState::Lost => "lost",
+        }
+    }
+}
+
+/// Transmit-side counters.
+#[derive(Debug)]
+pub struct TxCounters {
+    pub(super) tick: TickStats,
+    pub(super) tx_frames: u64,
+    pub(super) tx_errors: u64,
+    pub(super) tx_not_open: u64,
+    pub(super) tx_stale_dropped: u64,
+    pub(super) send_max_ns: u64,
+    pub(super) mode: Mode,
+    pub(super) applied: [f64; 4],
+    pub(super) rate_limited_ticks: u64,
+    pub(super) transport: TransportState,
+    pub(super) transport_losses: u64,
+    pub(super) last_error: Option<String>,
+}
+
+impl TxCounters {
+    pub(super) fn new(period_ns: u64, trace: usize) -> Self {
+        TxCounters {
+            tick: TickStats::new(period_ns, trace),
+            tx_frames: 0,
+            tx_errors: 0,
+            tx_not_open: 0,
+            tx_stale_dropped: 0,
+            send_max_ns: 0,
+            mode: Mode::Safe,
+            applied: [0.0; 4],
+            rate_limited_ticks: 0,
+            transport: TransportState::NotOpen,
+            transport_losses: 0,
+            last_error: None,
+        }
+    }
+}
+
+/// Settings of the transmit loop.
+#[derive(Clone, Copy, Debug)]
+pub struct TxParams {
+    /// Tick period, ns.
+    pub period_ns: u64,
+    /// Limits and watchdog.
+    pub safety: SafetyConfig,
+    /// Zero frames sent after the release on stop.
+    pub stop_safe_frames: u32,
+    /// Loss after this long without a frame reaching the peer, ns.
+    pub transport_timeout_ns: u64,
+}
+
+/// Largest number of release frames on stop (4096 Nm at one 2 Nm step a
+/// tick): a bound, so stop always ends.
+const MAX_RELEASE_FRAMES: u32 = 2048;
+
+/// The transmit loop: runs until a stop request, then releases the output to
+/// zero at the safe rate, sends `stop_safe_frames` zero frames, and closes
+/// the sink.
+pub fn run_tx<C: Clock>(
+    clock: &C,
+    p: TxParams,
+    shared: &Shared,
+    sink: &mut dyn Sink,
+    health: Option<&Health>,
+    log: Option<&LogSender>,
+) {
+    let t0 = clock.now_ns();
+    let mut sched = Schedule::new(t0 + p.period_ns, p.period_ns);
+    let mut safety = Safety::new(p.safety, p.period_ns, sched.deadline());
+    let mut counter: u8 = 0;
+    // Zero frames still to send once stopping (None: not stopping).
+    let mut stopping: Option<u32> = None;
+    let mut release_frames = 0u32;
+    // Commands received (real time) before the last reset are stale.
+    let mut stale_before = 0u64;
+    // Lateness is measured from the first deadline not yet served, so a tick
+    // that comes after skipped deadlines reports the whole wait.
+    let mut due = sched.deadline();
+    let mut last_good = t0;
+    let mut state = TransportState::NotOpen;
+    loop {
+        let deadline = sched.deadline();
+        clock.sleep_until_ns(deadline);
+        let wake = clock.now_ns();
+        if stopping.is_none() && shared.stop.load(Ordering::Acquire) {
+            stopping = Some(p.stop_safe_frames);
+        }
+        if stopping == Some(0) {
+            break;
+        }
+        if let Some(t) = lock(&shared.reset_at).take() {
+            if safety.reset(deadline) {
+                stale_before = t;
+            }
+        }
+        // While the transport is lost the output restarts from 0 Nm: the
+        // first frame that gets through ramps up at the rise rate.
+        if state == TransportState::Lost {
+            safety.restart_output();
+        }
+        let latest = lock(&shared.cmd).cmd;
+        let cmd = latest.filter(|c| c.received_ns >= stale_before);
+        let (mode, torques) = if stopping.is_some() {
+            safety.stopping()
+        } else {
+            safety.step(deadline, cmd.as_ref())
+        };
+        let frame = encode_torque_cmd(&torques, mode, counter);
+        let before = clock.now_ns();
+        let outcome = match &frame {
+            Ok(f) => sink.send(f),
+            Err(e) => Err(e.clone()),
+        };
+        let done = clock.now_ns();
+        if let Some(n) = stopping.as_mut() {
+            if torques == [0.0; 4] || release_frames >= MAX_RELEASE_FRAMES {
+                *n = n.saturating_sub(1);
+            } else {
+                release_frames += 1;
+            }
+        }
+        let link_up = health.is_none_or(|h| h.link_up.load(Ordering::Acquire));
+        let good = matches!(&outcome, Ok(o) if o.written == Written::Yes && o.flushed == 0);
+        let not_open = matches!(&outcome, Ok(o) if o.written == Written::NotOpen);
+        if good && link_up {
+            last_good = done;
+        }
+        let new_state = if !link_up
+            || (!good && !not_open && done.saturating_sub(last_good) >= p.transport_timeout_ns)
+        {
+            TransportState::Lost
+        } else if good {
+            TransportState::Up
+        } else if not_open && state != TransportState::Lost {
+            last_good = done;
+            TransportState::NotOpen
+        } else {
+            state
+        };
+        let skipped = sched.advance(done);
+        let mut tx = lock(&shared.tx);
+        tx.tick.record_wake(
+            TickRecord {
+                index: sched.index().saturating_sub(1 + skipped),
+                deadline_ns: deadline,
+                wake_ns: wake,
+            },
+            due,
+        );
+        due = deadline + p.period_ns;
+        tx.tick.record_skip(skipped);
+        tx.send_max_ns = tx.send_max_ns.max(done.saturating_sub(before));
+        tx.mode = mode;
+        tx.rate_limited_ticks = safety.rate_limited_ticks();
+        if new_state == TransportState::Lost && state != TransportState::Lost {
+            tx.transport_losses += 1;
+        }
+        state = new_state;
+        tx.transport = state;
+        shared
+            .lost
+            .store(state == TransportState::Lost, Ordering::Release);
+        match outcome {
+            Ok(o) => {
+                tx.tx_stale_dropped += u64::from(o.flushed);
+                match o.written {
+                    Written::Yes => {
+                        tx.tx_frames += 1;
+                        tx.applied = torques;
+                        counter = e2e::next_counter(counter);
+                        if let (Some(l), Ok(f)) = (log, &frame) {
+                            l.log(realtime_ns(), f, Dir::Tx);
+                        }
+                    }
+                    Written::Dropped => {
+                        tx.tx_stale_dropped += 1;
+                        counter = e2e::next_counter(counter);
+                    }
+                    Written::NotOpen => tx.tx_not_open += 1,
+                }
+            }
+            Err(e) => {
+                tx.tx_errors += 1;
+                counter = e2e::next_counter(counter);
+                tx.last_error = Some(e.to_string());
+            }
+        }
+    }
+    sink.close();
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::testutil::{config, MS};
+    use super::*;
+    use crate::codec::WHEEL_TORQUE_CMD;
+    use crate::error::Result;
+    use crate::frame::CanFrame;
+    use crate::transport::Outcome;
+    use std::cell::RefCell;
+    use std::sync::atomic::AtomicU64;
+
+    /// advances by a scripted work time inside `send`.
+    struct FakeClock {
+        now: AtomicU64,
+        late: Box<dyn Fn(u64) -> u64 + Send>,
+        wakes: AtomicU64,
+    }
+
+    impl Clock for FakeClock {
+        fn now_ns(&self) -> u64 {
+            self.now.load(Ordering::SeqCst)
+        }
+        fn sleep_until_ns(&self, d: u64) {
+            let k = self.wakes.fetch_add(1, Ordering::SeqCst);
+            let now = self.now.load(Ordering::SeqCst).max(d) + (self.late)(k);
+            self.now.store(now, Ordering::SeqCst);
+        }
+    }
+
+    type Script<'a> = Box<dyn Fn(usize, &Shared, &FakeClock) -> Outcome + 'a>;
+
+    /// Records frames; runs a script per tick (by tick number) that may set
+    /// commands, request a stop, burn time, and says what the transport did.
+    struct ScriptSink<'a> {
+        clock: &'a FakeClock,
+        shared: &'a Shared,
+        frames: RefCell<Vec<(u64, CanFrame, Outcome)>>,
+        script: Script<'a>,
+        closed: bool,
+    }
+
+    // SAFETY: the test runs on one thread; the sink never crosses threads.
+    unsafe impl Send for ScriptSink<'_> {}
+
+    impl Sink for ScriptSink<'_> {
+        fn send(&mut self, f: &CanFrame) -> Result<Outcome> {
+            let n = self.frames.borrow().len();
+            let o = (self.script)(n, self.shared, self.clock);
+            self.frames.borrow_mut().push((self.clock.now_ns(), *f, o));
+            Ok(o)
+        }
+        fn close(&mut self) {
+            self.closed = true;
+        }
+    }
+
+    fn params() -> TxParams {
+        let c = config();
+        TxParams {
+            period_ns: 50 * MS,
+            safety: c.safety,
+            stop_safe_frames: 3,
+            transport_timeout_ns: 200 * MS,
+        }
+    }
+
+    fn decode(f: &CanFrame) -> (u8, u8, [f64; 4]) {
+        let m = &WHEEL_TORQUE_CMD;
+        assert!(e2e::crc_ok(f.data(), m.data_id));
+        let g = |n: &str| m.signal(n).unwrap().get(f.data());
+        (
+            e2e::counter_of(f.data()).unwrap(),
+            g("Mode") as u8,
+            [g("TorqueFL"), g("TorqueFR"), g("TorqueRL"), g("TorqueRR")],
+        )
+    }
+
+    type Run = (Vec<(u64, CanFrame, Outcome)>, Shared, bool);
+
+    /// Run the loop with a script; returns (frames, shared, closed).
+    fn run(
+        late: impl Fn(u64) -> u64 + Send + 'static,
+        script: impl Fn(usize, &Shared, &FakeClock) -> Outcome,
+    ) -> Run {
+        let shared = Shared::new(&config());
+        shared.open_for_commands();
+        let clock = FakeClock {
+            now: AtomicU64::new(1_000 * MS),
+            late: Box::new(late),
+            wakes: AtomicU64::new(0),
+        };
+        let mut sink = ScriptSink {
+            clock: &clock,
+            shared: &shared,
+            frames: RefCell::new(vec![]),
+            script: Box::new(script),
+            closed: false,
+        };
+        run_tx(&clock, params(), &shared, &mut sink, None, None);
+        let closed = sink.closed;
+        let frames = std::mem::take(&mut *sink.frames.borrow_mut());
+        drop(sink);
+        (frames, shared, closed)
+    }
+
+    /// A controller that sends a fresh command every tick for 40 ticks, then
+    /// goes silent; stop after tick 80.
+    fn controller(n: usize, sh: &Shared, _c: &FakeClock) -> Outcome {
+        if n < 40 {
+            // Arrival 0.4 ms after this tick's deadline, whatever the wake-up
+            // jitter: frames then depend on commands and arrival times only.
+            let t = [55.0, -55.0, 5.0, 300.0];
+            let at = 1_050 * MS + n as u64 * 50 * MS + 400_000;
+            sh.set_command(t, n as u64 + 1, at).unwrap();
+        }
+        if n == 80 {
+            sh.request_stop();
+        }
+        Outcome::YES
+    }
+
+    #[test]
+    fn ticks_on_absolute_deadlines_and_stops_with_safe_frames() {
+        let (frames, shared, closed) = run(|k| (k % 7) * 100_000, controller);
+        assert!(closed);
+        // 81 ticks before the stop request is seen, then 3 zero frames.
+        assert_eq!(frames.len(), 84);
+        for (k, (t, _, _)) in frames.iter().enumerate() {
+            let deadline = 1_050 * MS + k as u64 * 50 * MS;
+            assert!(*t >= deadline && *t < deadline + MS, "tick {k} at {t}");
+        }
+        let d: Vec<_> = frames.iter().map(|(_, f, _)| decode(f)).collect();
+        for (k, x) in d.iter().enumerate() {
+            assert_eq!(x.0 as usize, k % 15);
+        }
+        // First tick: no command yet -> Safe. Rise 200 Nm/s = 10 Nm per tick.
+        assert_eq!(d[0].1, Mode::Safe as u8);
+        assert_eq!(d[1].1, Mode::Active as u8);
+        assert_eq!(d[1].2, [10.0, -10.0, 4.0, 10.0]); // 5 Nm is a tie: to even (4)
+        assert_eq!(d[12].2, [56.0, -56.0, 4.0, 100.0]);
+        // The last command arrives during tick 39, 0.4 ms after its
+        // deadline: its age at tick 39 + j is 50 j ms minus that.
+        // Hold from the first age >= 120 ms (j = 3), Safe from >= 300 (j = 7),
+        // Fault from >= 1000 (j = 21).
+        assert_eq!(d[41].1, Mode::Active as u8);
+        assert_eq!(d[42].1, Mode::Hold as u8);
+        assert_eq!(d[42].2, [56.0, -56.0, 4.0, 100.0]);
+        assert_eq!(d[45].1, Mode::Hold as u8);
+        assert_eq!(d[46].1, Mode::Safe as u8);
+        // Released at 400 Nm/s = 20 Nm per tick, not in one step.
+        assert_eq!(d[46].2, [36.0, -36.0, 0.0, 80.0]);
+        assert_eq!(d[51].2, [0.0; 4]);
+        assert_eq!(d[59].1, Mode::Safe as u8);
+        assert_eq!(d[60].1, Mode::Fault as u8);
+        for x in &d[81..] {
+            assert_eq!((x.1, x.2), (Mode::Fault as u8, [0.0; 4]));
+        }
+        let s = lock(&shared.tx).tick.summary();
+        assert_eq!(s.ticks, 84);
+        assert_eq!(s.overruns, 0);
+        assert!(s.lateness_max_us <= 600.0 + 1e-9);
+        assert!(s.drift_us.unwrap().abs() < 1_000.0);
+    }
+
+    #[test]
+    fn stop_releases_before_its_zero_frames() {
+        let (frames, ..) = run(
+            |_| 0,
+            |n, sh, c| {
+                if n < 20 {
+                    sh.set_command([-100.0; 4], n as u64 + 1, c.now_ns())
+                        .unwrap();
+                }
+                if n == 19 {
+                    sh.request_stop();
+                }
+                Outcome::YES
+            },
+        );
+        let d: Vec<_> = frames.iter().map(|(_, f, _)| decode(f)).collect();
+        assert_eq!(d[19].2, [-100.0; 4]);
+        let tail: Vec<f64> = d[20..].iter().map(|x| x.2[0]).collect();
+        assert_eq!(tail, [-80.0, -60.0, -40.0, -20.0, 0.0, 0.0, 0.0]);
+        assert!(d[20..].iter().all(|x| x.1 == Mode::Safe as u8));
+    }
+
+    #[test]
+    fn same_commands_in_same_bytes_out() {
+        let (a, ..) = run(|k| (k % 3) * 50_000, controller);
+        let (b, ..) = run(|k| (k % 5) * 900_000 + 7, controller);
+        let fa: Vec<CanFrame> = a.iter().map(|x| x.1).collect();
+        let fb: Vec<CanFrame> = b.iter().map(|x| x.1).collect();
+        assert_eq!(fa, fb);
+    }
+
+    #[test]
+    fn overrun_skips_deadlines_and_lateness_counts_the_whole_wait() {
+        let (frames, shared, _) = run(
+            |_| 0,
+            |n, sh, c| {
+                if n == 5 {
+                    // This tick's work takes 130 ms: deadlines +50 and +100 are skipped.
+                    c.now.fetch_add(130 * MS, Ordering::SeqCst);
+                }
+                if n == 10 {
+                    sh.request_stop();
+                }
+                Outcome::YES
+            },
+        );
+        let t: Vec<u64> = frames.iter().map(|x| x.0).collect();
+        assert_eq!(t[6] - t[5], 20 * MS); // frame 5 is stamped after its 130 ms of work
+        let s = lock(&shared.tx).tick.summary();
+        assert_eq!(s.overruns, 1);
+        assert_eq!(s.skipped_ticks, 2);
+        // The tick after the overrun was due 100 ms before it woke.
+        assert!((s.lateness_max_us - 100_000.0).abs() < 1.0, "{s:?}");
+    }
+
+    #[test]
+    fn a_transport_that_takes_nothing_is_lost_then_recovers_from_zero() {
+        let (frames, shared, _) = run(
+            |_| 0,
+            |n, sh, c| {
+                let _ = sh.set_command([100.0; 4], n as u64 + 1, c.now_ns());
+                if n == 40 {
+                    sh.request_stop();
+                }
+                if (15..25).contains(&n) {
+                    Outcome::DROPPED
+                } else {
+                    Outcome::YES
+                }
+            },
+        );
+        let tx = lock(&shared.tx);
+        assert_eq!(tx.transport_losses, 1);
+        assert_eq!(tx.tx_stale_dropped, 10);
+        drop(tx);
+        let d: Vec<_> = frames.iter().map(|(_, f, _)| decode(f)).collect();
+        // Lost after 200 ms (4 ticks) without a frame through; from then on
+        // the output restarts from 0 Nm and ramps at the rise rate.
+        assert_eq!(d[14].2[0], 100.0);
+        assert_eq!(d[25].2[0], 10.0);
+        assert_eq!(d[26].2[0], 20.0);
+    }
+
+    #[test]
+    fn reset_clears_latched_fault() {
+        let (frames, ..) = run(
+            |_| 0,
+            |n, sh, c| {
+                if n == 0 {
+                    sh.set_command([20.0; 4], 1, c.now_ns()).unwrap();
+                }
+                if n == 30 {
+                    sh.request_reset(c.now_ns());
+                }
+                if n == 33 {
+                    sh.set_command([20.0; 4], 2, c.now_ns()).unwrap();
+                }
+                if n == 36 {
+                    sh.request_stop();
+                }
+                Outcome::YES
+            },
+        );
+        let d: Vec<_> = frames.iter().map(|(_, f, _)| decode(f)).collect();
+        assert_eq!(d[30].1, Mode::Fault as u8);
+        assert_eq!(d[31].1, Mode::Safe as u8);
+        assert_eq!(d[33].1, Mode::Safe as u8);
+        assert_eq!(d[34].1, Mode::Active as u8);
+        assert_eq!(d[34].2, [10.0; 4]);
+    }
+}
