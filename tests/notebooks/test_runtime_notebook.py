@@ -28,5 +28,7 @@ def test_runtime_notebook_executes(tmp_path, monkeypatch):
     # (no missed deadline is the end-to-end test's check, under real-time priority)
     assert "'misses':" in text and "identical bit for bit" in text
     assert "speed RMS difference" in text
-    figures = sorted(p.name for p in (tmp_path / "runtime_notebook" / "figures").glob("*.png"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notebook_output"]  # nothing else
+    out = tmp_path / "notebook_output" / "runtime"
+    figures = sorted(p.name for p in (out / "figures").glob("*.png"))
     assert figures == ["response.png", "tick_timing.png"]

@@ -21,6 +21,7 @@ def test_sweeps_notebook_executes(tmp_path):
         o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
     )
     assert "2700 rows" in text and "tuned rho scales" in text and "eq.opt_ro" in text
-    out = tmp_path / "sweeps_and_tuning"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notebook_output"]  # nothing else
+    out = tmp_path / "notebook_output" / "sweeps_and_tuning"
     for name in ("sweep/iterations_vs_rho.png", "sweep/best_rho.png", "loss.png", "params.json"):
         assert (out / name).exists(), name

@@ -18,13 +18,14 @@ def test_walkthrough_notebook_executes(tmp_path):
     first = next(c for c in nb.cells if c.cell_type == "code").source
     assert first.startswith("import os\n") and "XLA_FLAGS" in first
     assert first.index("jax_enable_x64") < first.index("from ampc_jax")
-    # run where its figures may be written (walkthrough_figures/ in the working directory)
+    # run where its figures may be written (notebook_output/ in the working directory)
     nbclient.NotebookClient(nb, timeout=240, kernel_name="python3").execute(cwd=str(tmp_path))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notebook_output"]  # nothing else
     text = "".join(
         o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
     )
     assert "e_sub_p95" in text and "yaw_rms_focus" in text
-    figures = sorted(p.name for p in (tmp_path / "walkthrough_figures").glob("*.png"))
+    figures = sorted(p.name for p in (tmp_path / "notebook_output" / "walkthrough").glob("*.png"))
     assert figures == [
         "convergence.png",
         "vehicle_response.png",
