@@ -8,14 +8,19 @@
 * :mod:`~.acceleration` -- Anderson acceleration;
 * :mod:`~.params` -- :class:`SolverParams`, the tunable numbers as data;
 * :mod:`~.state` -- :class:`ADMMState`, cold and warm starts;
-* :mod:`~.runners` -- the ``while_loop`` and fixed-``scan`` runners.
+* :mod:`~.runners` -- the ``while_loop`` and fixed-``scan`` runners;
+* :mod:`~.core` -- :class:`ADMMSolver`, the core protocol every formulation
+  implements (setup, init, step, converged, result, point / at) and the
+  runners written once on it.
 """
 
+from .core import ADMMSolver
 from .params import DEFAULT_TOL, SolverParams, solver_params
 from .state import ADMMState, cold_state, shift_horizon, shift_state
 
 __all__ = [
     "DEFAULT_TOL",
+    "ADMMSolver",
     "ADMMState",
     "SolverParams",
     "cold_state",

@@ -1,5 +1,10 @@
 """The protocol every formulation follows, so the closed loop, sweeps and tuning
-take any of them by name (:data:`ampc_jax.formulations.FORMULATIONS`)."""
+take any of them by name (:data:`ampc_jax.formulations.FORMULATIONS`).
+
+:class:`Formulation` is what a caller of a solve uses. Every formulation here
+is also an :class:`~ampc_jax.admm.core.ADMMSolver`: the core protocol (setup,
+init, step, converged, result, point / at) that its runners, the sweep
+engine and the tuning loss iterate through."""
 
 from __future__ import annotations
 

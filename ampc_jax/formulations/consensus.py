@@ -74,14 +74,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..admm.acceleration import anderson_memory
+from ..admm.core import ADMMSolver
 from ..admm.costs import padded_costs
-from ..admm.feasibility import with_certificate
 from ..admm.layout import padded_layout
 from ..admm.linalg import block_diag, spd_inverse_dense
 from ..admm.local_qp import InnerState, LocalQP, factor, inner_rho, iterate
-from ..admm.params import DEFAULT_TOL, SolverParams, as_params, solver_params
+from ..admm.params import SolverParams, as_params
 from ..admm.rho import extreme_eigenvalues
-from ..admm.runners import check_iterations, run_fixed, run_while
+from ..admm.runners import check_iterations
 from ..admm.state import shift_horizon, warm_start
 from ..problem.data import ProblemData
 from ..problem.errors import ProblemError
@@ -150,8 +150,9 @@ class ConsensusSetup(NamedTuple):
 
 
 @dataclass(frozen=True)
-class ConsensusADMM:
-    """Shared machinery of :class:`FullyDistributed` and :class:`VirtualCenter`.
+class ConsensusADMM(ADMMSolver):
+    """Shared machinery of :class:`FullyDistributed` and :class:`VirtualCenter`;
+    the runners are :class:`~ampc_jax.admm.core.ADMMSolver`'s.
 
     Parameters
     ----------
@@ -227,26 +228,6 @@ class ConsensusADMM:
         for j in range(T.n_objectives):
             out[j, list(T.group_columns(j))] = 0.0
         return out
-
-    def params(
-        self,
-        rho: Any = 1.0,
-        relaxation: Any = 1.0,
-        tol_primal: Any = DEFAULT_TOL,
-        tol_dual: Any = DEFAULT_TOL,
-        dtype: Any = None,
-    ) -> SolverParams:
-        """Validated :class:`SolverParams`: ``rho`` a factor on sqrt(lambda_min
-        lambda_max) of H_j per objective (rho_j itself with ``rho_method="given"``),
-        default 1.0; ``relaxation`` in (0, 2), default 1.0; tolerances default 1e-6."""
-        return solver_params(
-            self.n_rho,
-            rho=rho,
-            relaxation=relaxation,
-            tol_primal=tol_primal,
-            tol_dual=tol_dual,
-            dtype=dtype,
-        )
 
     # -- per-step setup -----------------------------------------------------------------
     def setup(self, data: ProblemData, params: SolverParams | None = None) -> ConsensusSetup:
@@ -383,41 +364,20 @@ class ConsensusADMM:
         """eq.Convergence for every objective, with the local QPs' residuals."""
         return jnp.all((state.primal <= setup.tol_primal) & (state.dual <= setup.tol_dual))
 
-    # -- runners ------------------------------------------------------------------------
-    @staticmethod
-    def _point(st: ConsensusState) -> Any:
-        return jnp.concatenate([st.Z.ravel(), st.gamma.ravel(), st.s.ravel(), st.y.ravel()])
+    # -- the map's argument, for Anderson acceleration ---------------------------------
+    def point(self, state: ConsensusState) -> Any:
+        """The ADMM map's argument (Z, gamma, s, y), flattened (U is an output only)."""
+        return jnp.concatenate(
+            [state.Z.ravel(), state.gamma.ravel(), state.s.ravel(), state.y.ravel()]
+        )
 
-    @staticmethod
-    def _at(x: Any, st: ConsensusState) -> ConsensusState:
+    def at(self, x: Any, state: ConsensusState) -> ConsensusState:
+        """``state`` with (Z, gamma, s, y) from the vector ``x`` (:meth:`point`'s inverse)."""
         out, o = [], 0
-        for a in (st.Z, st.gamma, st.s, st.y):
+        for a in (state.Z, state.gamma, state.s, state.y):
             out.append(x[o : o + a.size].reshape(a.shape))
             o += a.size
-        return st._replace(Z=out[0], gamma=out[1], s=out[2], y=out[3])
-
-    def run(self, setup: ConsensusSetup, state: ConsensusState) -> ConsensusState:
-        """``lax.while_loop`` until the stopping rule or ``max_iter``."""
-        return run_while(
-            lambda st: self.step(setup, st),
-            lambda st: self.converged(setup, st),
-            state,
-            self.max_iter,
-            anderson=self.anderson,
-            point=self._point,
-            at=self._at,
-        )
-
-    def run_fixed(self, setup: ConsensusSetup, state: ConsensusState, iterations: int) -> Any:
-        """Exactly ``iterations`` outer iterations under ``lax.scan`` (differentiable)."""
-        return run_fixed(
-            lambda st: self.step(setup, st),
-            state,
-            check_iterations(iterations),
-            anderson=self.anderson,
-            point=self._point,
-            at=self._at,
-        )
+        return state._replace(Z=out[0], gamma=out[1], s=out[2], y=out[3])
 
     def result(self, setup: ConsensusSetup, state: ConsensusState) -> SolveResult:
         """The global inputs Z projected on the bounds, and the status."""
@@ -436,25 +396,3 @@ class ConsensusADMM:
             rho=setup.rho,
             state=state,
         )
-
-    def solve(
-        self,
-        data: ProblemData,
-        params: SolverParams | None = None,
-        warm: ConsensusState | None = None,
-    ) -> SolveResult:
-        """Full control step: setup, factorise, iterate to tolerance."""
-        setup = self.setup(data, params)
-        res = self.result(setup, self.run(setup, self.init(setup, warm)))
-        return with_certificate(res, data)
-
-    def solve_fixed(
-        self,
-        data: ProblemData,
-        iterations: int,
-        params: SolverParams | None = None,
-        warm: ConsensusState | None = None,
-    ) -> SolveResult:
-        """Full control step with a fixed outer iteration count (for ``jax.grad``)."""
-        setup = self.setup(data, params)
-        return self.result(setup, self.run_fixed(setup, self.init(setup, warm), iterations))

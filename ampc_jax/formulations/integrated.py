@@ -9,27 +9,34 @@ established solver is :func:`ampc_jax.reference.solve_reference`.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any
 
-from ..admm.params import DEFAULT_TOL, SolverParams
-from ..admm.state import ADMMState, cold_state, shift_state
+from ..admm.core import ADMMSolver
+from ..admm.params import SolverParams
+from ..admm.state import ADMMState
 from ..problem.condensed import merged_data, merged_topology
 from ..problem.data import ProblemData
 from ..problem.topology import Topology
 from ..results import SolveResult
-from .local_explicit import LocalExplicit
+from .local_explicit import LocalExplicit, LocalSetup
 
 __all__ = ["IntegratedADMM"]
 
 
 @dataclass(frozen=True)
-class IntegratedADMM:
+class IntegratedADMM(ADMMSolver):
     """JAX-native integrated MPC: the static options of :class:`LocalExplicit`
     (there: their meaning and defaults) on the merged problem.
 
-    ``params.rho`` has one entry (one objective): by default a factor on
-    eq.opt_ro's rho* of the whole problem. ``max_iter`` defaults to 2000.
+    It implements the core protocol itself (:class:`~ampc_jax.admm.core.ADMMSolver`):
+    :meth:`setup` merges the objectives of the data it is given
+    (:func:`~ampc_jax.problem.merged_data`) and factorises as Local Explicit
+    does on the merged topology (:attr:`merged`); the state, the step and the
+    result are that Local Explicit's. ``params.rho`` has one entry (one
+    objective): by default a factor on eq.opt_ro's rho* of the whole problem.
+    ``max_iter`` defaults to 2000.
     """
 
     topology: Topology
@@ -41,10 +48,10 @@ class IntegratedADMM:
     dual_residual: str = "slack"
 
     def __post_init__(self) -> None:
-        _ = self.inner  # validates the options
+        _ = self.merged  # validates the options
 
-    @property
-    def inner(self) -> LocalExplicit:
+    @functools.cached_property
+    def merged(self) -> LocalExplicit:
         """Local Explicit on the merged (one-objective) topology."""
         return LocalExplicit(
             merged_topology(self.topology),
@@ -60,34 +67,31 @@ class IntegratedADMM:
     def n_rho(self) -> int:
         return 1
 
-    def params(
-        self,
-        rho: Any = 1.0,
-        relaxation: Any = 1.0,
-        tol_primal: Any = DEFAULT_TOL,
-        tol_dual: Any = DEFAULT_TOL,
-        dtype: Any = None,
-    ) -> SolverParams:
-        """:meth:`LocalExplicit.params` with one rho."""
-        return self.inner.params(rho, relaxation, tol_primal, tol_dual, dtype)
+    def setup(self, data: ProblemData, params: SolverParams | None = None) -> LocalSetup:
+        """The merged problem's setup: ``data``'s objectives stacked into one, then
+        :meth:`LocalExplicit.setup`."""
+        return self.merged.setup(merged_data(data), params)
+
+    def init(self, setup: LocalSetup, warm: ADMMState | None = None) -> ADMMState:
+        return self.merged.init(setup, warm)
+
+    def step(self, setup: LocalSetup, state: ADMMState) -> ADMMState:
+        return self.merged.step(setup, state)
+
+    def converged(self, setup: LocalSetup, state: ADMMState) -> Any:
+        return self.merged.converged(setup, state)
+
+    def result(self, setup: LocalSetup, state: ADMMState) -> SolveResult:
+        return self.merged.result(setup, state)
+
+    def point(self, state: ADMMState) -> Any:
+        return self.merged.point(state)
+
+    def at(self, x: Any, state: ADMMState) -> ADMMState:
+        return self.merged.at(x, state)
 
     def cold_state(self, dtype: Any = None) -> ADMMState:
-        return cold_state(merged_topology(self.topology), dtype)
+        return self.merged.cold_state(dtype)
 
-    @staticmethod
-    def shift(state: ADMMState, steps: int = 1) -> ADMMState:
-        return shift_state(state, steps)
-
-    def solve(
-        self, data: ProblemData, params: SolverParams | None = None, warm: Any = None
-    ) -> SolveResult:
-        return self.inner.solve(merged_data(data), params, warm)
-
-    def solve_fixed(
-        self,
-        data: ProblemData,
-        iterations: int,
-        params: SolverParams | None = None,
-        warm: Any = None,
-    ) -> SolveResult:
-        return self.inner.solve_fixed(merged_data(data), iterations, params, warm)
+    def shift(self, state: ADMMState, steps: int = 1) -> ADMMState:
+        return self.merged.shift(state, steps)

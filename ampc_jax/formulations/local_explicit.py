@@ -62,13 +62,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..admm.acceleration import anderson_memory
+from ..admm.core import ADMMSolver
 from ..admm.costs import padded_costs
-from ..admm.feasibility import with_certificate
 from ..admm.kkt import KKT, KKT_SOLVES, select_kkt
 from ..admm.layout import padded_layout
-from ..admm.params import DEFAULT_TOL, SolverParams, as_params, solver_params
+from ..admm.params import SolverParams, as_params
 from ..admm.rho import eq_opt_ro
-from ..admm.runners import run_fixed, run_while
 from ..admm.state import ADMMState, cold_state, shift_state, warm_start
 from ..problem.data import ProblemData
 from ..problem.topology import Topology
@@ -131,12 +130,13 @@ def _int_at_least(name: str, value: Any, low: int) -> int:
 
 
 @dataclass(frozen=True)
-class LocalExplicit:
+class LocalExplicit(ADMMSolver):
     """Local Explicit solver for one :class:`Topology`: its static options.
 
     The static options fix the compiled program; the numbers one may tune are
     the :class:`~ampc_jax.admm.params.SolverParams` argument of :meth:`solve`
-    (:meth:`params` builds them).
+    (:meth:`params` builds them). The runners (:meth:`run`, :meth:`run_fixed`,
+    :meth:`solve`, :meth:`solve_fixed`) are :class:`~ampc_jax.admm.core.ADMMSolver`'s.
 
     Parameters
     ----------
@@ -209,27 +209,6 @@ class LocalExplicit:
     def n_rho(self) -> int:
         """Number of rho_j (one per objective)."""
         return self.topology.n_objectives
-
-    def params(
-        self,
-        rho: Any = 1.0,
-        relaxation: Any = 1.0,
-        tol_primal: Any = DEFAULT_TOL,
-        tol_dual: Any = DEFAULT_TOL,
-        dtype: Any = None,
-    ) -> SolverParams:
-        """Validated :class:`SolverParams` (see :func:`~ampc_jax.admm.params.solver_params`):
-        ``rho`` a factor on eq.opt_ro's rho* per objective (rho_j itself with
-        ``rho_method="given"``), default 1.0; ``relaxation`` in (0, 2), default
-        1.0 (the paper); tolerances default 1e-6."""
-        return solver_params(
-            self.n_rho,
-            rho=rho,
-            relaxation=relaxation,
-            tol_primal=tol_primal,
-            tol_dual=tol_dual,
-            dtype=dtype,
-        )
 
     @property
     def kkt_solve(self) -> KKT:
@@ -438,38 +417,16 @@ class LocalExplicit:
         """eq.Convergence for every objective (see ``dual_residual``)."""
         return jnp.all((state.primal <= setup.tol_primal) & (state.dual <= setup.tol_dual))
 
-    # -- runners ---------------------------------------------------------------------
-    @staticmethod
-    def _point(st: ADMMState) -> Any:
+    # -- the map's argument, for Anderson acceleration ------------------------------
+    def point(self, state: ADMMState) -> Any:
         """The ADMM map's argument (Z, gamma), flattened (U is an output only)."""
-        return jnp.concatenate([st.Z.ravel(), st.gamma.ravel()])
+        return jnp.concatenate([state.Z.ravel(), state.gamma.ravel()])
 
-    @staticmethod
-    def _at(x: Any, st: ADMMState) -> ADMMState:
-        nz = st.Z.size
-        return st._replace(Z=x[:nz].reshape(st.Z.shape), gamma=x[nz:].reshape(st.gamma.shape))
-
-    def run(self, setup: LocalSetup, state: ADMMState) -> ADMMState:
-        """``lax.while_loop`` until eq.Convergence or ``max_iter`` (deployment)."""
-        return run_while(
-            lambda st: self.step(setup, st),
-            lambda st: self.converged(setup, st),
-            state,
-            self.max_iter,
-            anderson=self.anderson,
-            point=self._point,
-            at=self._at,
-        )
-
-    def run_fixed(self, setup: LocalSetup, state: ADMMState, iterations: int) -> ADMMState:
-        """Exactly ``iterations`` iterations under ``lax.scan`` (differentiable)."""
-        return run_fixed(
-            lambda st: self.step(setup, st),
-            state,
-            iterations,
-            anderson=self.anderson,
-            point=self._point,
-            at=self._at,
+    def at(self, x: Any, state: ADMMState) -> ADMMState:
+        """``state`` with (Z, gamma) from the vector ``x`` (:meth:`point`'s inverse)."""
+        nz = state.Z.size
+        return state._replace(
+            Z=x[:nz].reshape(state.Z.shape), gamma=x[nz:].reshape(state.gamma.shape)
         )
 
     def result(self, setup: LocalSetup, state: ADMMState) -> SolveResult:
@@ -495,30 +452,3 @@ class LocalExplicit:
             rho=setup.rho,
             state=state,
         )
-
-    def solve(
-        self,
-        data: ProblemData,
-        params: SolverParams | None = None,
-        warm: ADMMState | None = None,
-    ) -> SolveResult:
-        """Full control step: setup, factorise, rho, iterate to tolerance.
-
-        ``params``: the :class:`SolverParams` (default :meth:`params` ()), an
-        argument of the compiled step; ``warm``: a previous state (:meth:`shift`).
-        """
-        setup = self.setup(data, params)
-        res = self.result(setup, self.run(setup, self.init(setup, warm)))
-        return with_certificate(res, data)
-
-    def solve_fixed(
-        self,
-        data: ProblemData,
-        iterations: int,
-        params: SolverParams | None = None,
-        warm: ADMMState | None = None,
-    ) -> SolveResult:
-        """Full control step with a fixed iteration count (for ``jax.grad``, also
-        with respect to ``params``)."""
-        setup = self.setup(data, params)
-        return self.result(setup, self.run_fixed(setup, self.init(setup, warm), iterations))

@@ -38,9 +38,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
 
+from ..admm.core import ADMMSolver
 from ..admm.params import SolverParams
 from ..admm.runners import loop_parts, still_running
-from ..problem.condensed import merged_data
 from ..problem.data import ProblemData
 
 __all__ = [
@@ -88,16 +88,14 @@ class Work(NamedTuple):
         return float(self.computed) / needed if needed > 0 else float("nan")
 
 
-def _core(solver: Any) -> tuple[Any, Any]:
-    """The solver with setup / init / step / result, and the data map it needs
-    (:class:`~ampc_jax.formulations.IntegratedADMM` runs Local Explicit on the merged problem)."""
-    if hasattr(solver, "setup") and hasattr(solver, "step"):
-        return solver, lambda d: d
-    if hasattr(solver, "inner"):
-        return solver.inner, merged_data
-    raise TypeError(
-        f"formulation: {type(solver).__name__} has no setup/step pair for a segmented sweep"
-    )
+def _check_solver(solver: Any) -> ADMMSolver:
+    """``solver`` when it implements the core protocol, else a TypeError naming ``formulation``."""
+    if not isinstance(solver, ADMMSolver):
+        raise TypeError(
+            f"formulation: expected an ADMM formulation (ampc_jax.admm.core.ADMMSolver), "
+            f"got {type(solver).__name__}"
+        )
+    return solver
 
 
 def bucket_sizes(batch: int, min_bucket: int = 8) -> tuple[int, ...]:
@@ -124,7 +122,7 @@ def violation(data: ProblemData, u: Any) -> Any:
 
 
 def solve_pairs(
-    solver: Any,
+    solver: ADMMSolver,
     data: ProblemData,
     params: SolverParams,
     *,
@@ -140,24 +138,26 @@ def solve_pairs(
     running (see the module docstring). Results are the same pair by pair.
     Returns the per-pair :class:`PairResult` and the :class:`Work` done. Jittable.
     """
-    core, to_core = _core(solver)
-    max_iter = core.max_iter
+    solver = _check_solver(solver)
     B = int(np.shape(jax.tree.leaves(data)[0])[0])
-    setups = jax.vmap(lambda d, p: core.setup(to_core(d), p))(data, params)
-    states = jax.vmap(core.init)(setups)
-    anderson = getattr(core, "anderson", 0)
+    setups = jax.vmap(solver.setup)(data, params)
+    states = jax.vmap(solver.init)(setups)
 
     def parts(setup: Any, st: Any) -> tuple[Any, Any, Any]:
-        return loop_parts(lambda s: core.step(setup, s), st, anderson, core._point, core._at)
+        return loop_parts(
+            lambda s: solver.step(setup, s), st, solver.anderson, solver.point, solver.at
+        )
 
     def iterate_of(carry: Any) -> Any:
-        return carry[0] if anderson else carry
+        return carry[0] if solver.anderson else carry
 
     def running(setup: Any, carry: Any) -> Any:
-        return still_running(iterate_of(carry), lambda s: core.converged(setup, s), max_iter)
+        return still_running(
+            iterate_of(carry), lambda s: solver.converged(setup, s), solver.max_iter
+        )
 
     if not compaction:
-        finals = jax.vmap(core.run)(setups, states)
+        finals = jax.vmap(solver.run)(setups, states)
         it = finals.iteration
         work = Work(B * jnp.max(it), jnp.sum(it))
     else:
@@ -206,7 +206,7 @@ def solve_pairs(
         )
         finals = jax.vmap(iterate_of)(carry)
         work = Work(computed, jnp.sum(finals.iteration))
-    res = jax.vmap(core.result)(setups, finals)
+    res = jax.vmap(solver.result)(setups, finals)
     viol = jax.vmap(violation)(data, res.u)
     out = PairResult(
         u0=res.u[:, 0, :],
@@ -251,7 +251,7 @@ def global_pairs(tree: Any, mesh: jax.sharding.Mesh) -> Any:
 
 
 def sweep_solve(
-    solver: Any,
+    solver: ADMMSolver,
     data: ProblemData,
     params: SolverParams,
     *,

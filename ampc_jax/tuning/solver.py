@@ -162,7 +162,7 @@ def residual_loss(
     (tau = ``temperature``), i.e. the fraction of the K unrolled iterations still
     above the tolerance, what the while loop's iteration count is. Plain ADMM only.
     """
-    if getattr(solver, "anderson", 0):
+    if solver.anderson:
         raise ValueError("loss: 'residual' unrolls plain ADMM; use anderson 0")
     rho, alpha = unpack(theta)
     dt = rho.dtype

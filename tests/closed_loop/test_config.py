@@ -103,7 +103,7 @@ def test_solver_options_defaults_and_pass_through(name, ex):
     ci = config_for(name, formulation="integrated")
     ia = ci.simulator().controller.solver
     assert isinstance(ia, IntegratedADMM)
-    assert ia.anderson == ia.inner.anderson == c.anderson
+    assert ia.anderson == ia.merged.anderson == c.anderson
     pi = ci.loop_params().controller.solver
     np.testing.assert_array_equal(pi.rho, [c.integrated_rho_scale])
     assert float(pi.relaxation) == c.relaxation

@@ -6,6 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from ampc_jax.admm import ADMMSolver
 from ampc_jax.formulations import FORMULATIONS, Formulation, formulation
 from ampc_jax.generate import random_problem
 from ampc_jax.reference import solve_reference
@@ -18,7 +19,7 @@ def test_every_formulation_under_jit_vmap_and_grad(name):
     problems = [random_problem(s, 2, shared="all") for s in range(3)]
     T = problems[0].topology
     f = formulation(name, T, max_iter=20000)
-    assert isinstance(f, Formulation)
+    assert isinstance(f, Formulation) and isinstance(f, ADMMSolver)
     q = f.params(tol_primal=1e-12, tol_dual=1e-12)
     data = jax.tree.map(lambda *x: jnp.stack(x), *[p.data() for p in problems])
     out = jax.jit(jax.vmap(f.solve, in_axes=(0, None)))(data, q)

@@ -91,3 +91,22 @@ def test_float32_runs():
     assert out.u0.dtype == jnp.float32
     assert np.all(np.isfinite(np.asarray(out.u0)))
     assert np.mean(np.asarray(out.converged)) > 0.8
+
+
+def test_the_engine_takes_the_core_protocol_only():
+    """Any ADMMSolver runs, through its public protocol methods (no duck typing,
+    no private attribute); anything else is refused naming the formulation."""
+    import ast
+    import pathlib
+
+    import ampc_jax.sweep.engine as engine
+
+    tree = ast.parse(pathlib.Path(engine.__file__).read_text())
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Name):
+            assert node.func.id not in ("hasattr", "getattr"), ast.unparse(node)
+        if isinstance(node, ast.Attribute) and node.attr.startswith("_"):
+            assert node.attr.startswith("__"), ast.unparse(node)
+    cases = family("generated").sample(1, seed=0)
+    with pytest.raises(TypeError, match="formulation: expected an ADMM formulation"):
+        solve_pairs(object(), cases.data, None)
