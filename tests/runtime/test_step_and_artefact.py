@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import struct
 import zipfile
 from pathlib import Path
 
@@ -264,7 +265,13 @@ def _read(path: Path) -> tuple[bytes, dict]:
         return z.read("step.stablehlo"), json.loads(z.read("manifest.json"))
 
 
-def _write(path: Path, blob: bytes, manifest: dict) -> Path:
+def _write(path: Path, blob: bytes, manifest: dict, *, reseal: bool = True) -> Path:
+    """The artefact with ``manifest``: resealed (its hash recomputed, as a forger
+    who knows the format would) unless ``reseal`` is False (a naive edit)."""
+    if reseal:
+        from ampc_jax.runtime.artefact import seal_manifest
+
+        manifest = seal_manifest(manifest)
     with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as z:
         z.writestr("step.stablehlo", blob)
         z.writestr("manifest.json", json.dumps(manifest, indent=1))
@@ -391,3 +398,113 @@ def test_refuses_what_is_not_an_artefact(artefact, tmp_path) -> None:
         z.writestr("manifest.json", "{not json")
     with pytest.raises(ArtefactError, match="not a readable artefact"):
         load_artefact(tmp_path / "json.zip")
+
+
+# -- artefact: edits, damage, hostile manifests (issue: manifest edits accepted) --
+
+MANIFEST_EDITS = {
+    "jax": lambda m: m.update(jax="0.4.1"),
+    "jaxlib": lambda m: m.update(jaxlib="0.4.1"),
+    "platforms": lambda m: m.update(platforms=["cuda"]),
+    "scenario": lambda m: m.update(scenario="stability_dlc"),
+    "formulation": lambda m: m.update(formulation="integrated"),
+    "example": lambda m: m.update(example="stability"),
+    "outputs": lambda m: m["outputs"][0].update(shape=[5]),
+    "golden": lambda m: m["golden"]["outputs"][0]["data"].__setitem__(0, 1.0),
+    "extra key": lambda m: m.update(note="hello"),
+}
+
+
+@pytest.mark.parametrize("field", sorted(MANIFEST_EDITS))
+def test_refuses_any_manifest_edit(artefact, tmp_path, field) -> None:
+    path, _ = artefact
+    blob, manifest = _read(path)
+    MANIFEST_EDITS[field](manifest)
+    bad = _write(tmp_path / "edited.zip", blob, manifest, reseal=False)
+    with pytest.raises(ArtefactError, match=r"manifest.json .*modified after export") as exc:
+        load_artefact(bad)
+    assert str(bad) in str(exc.value)
+
+
+@pytest.mark.parametrize(
+    ("field", "words"),
+    [
+        ("platforms", "platforms"),
+        ("scenario", "scenario"),
+        ("formulation", "formulation"),
+        ("outputs", "outputs"),
+    ],
+)
+def test_refuses_a_resealed_manifest_that_disagrees_with_its_step(
+    artefact, step64, tmp_path, field, words
+) -> None:
+    """A forger who reseals the manifest: its fields must still agree with the
+    serialized step (platforms, output shapes) and with what this run builds."""
+    path, _ = artefact
+    step, _ = step64
+    blob, manifest = _read(path)
+    MANIFEST_EDITS[field](manifest)
+    bad = _write(tmp_path / "resealed.zip", blob, manifest)
+    with pytest.raises(ArtefactError, match=words):
+        load_artefact(bad, step.config_hash(), step=step, scenario=SCENARIO)
+
+
+def test_flipped_bytes_anywhere_in_the_zip_are_refused_cleanly(artefact, tmp_path) -> None:
+    """A byte flipped anywhere in the file: refused with ArtefactError (never
+    zlib.error or another exception), or, where the byte held no content (a
+    header's timestamp), the very same step and manifest read back."""
+    from ampc_jax.runtime.artefact import read_artefact
+
+    path, manifest = artefact
+    data = path.read_bytes()
+    rng = np.random.default_rng(0)
+    positions = sorted(set(rng.integers(0, len(data), 120).tolist()) | {0, 1, len(data) - 1})
+    refused = 0
+    for pos in positions:
+        bad = bytearray(data)
+        bad[pos] ^= 0xA5
+        p = tmp_path / "flipped.zip"
+        p.write_bytes(bytes(bad))
+        try:
+            art = read_artefact(p)
+        except ArtefactError as exc:
+            assert str(p) in str(exc)
+            refused += 1
+            continue
+        assert art.manifest == manifest, pos
+    assert refused > len(positions) // 2
+
+
+def test_a_flipped_byte_in_the_compressed_step_is_refused(artefact, tmp_path) -> None:
+    path, _ = artefact
+    with zipfile.ZipFile(path) as z:
+        info = z.getinfo("step.stablehlo")
+    data = bytearray(path.read_bytes())
+    # inside the deflated data: after the local header (30 bytes, name, extra)
+    n, m = struct.unpack("<HH", data[info.header_offset + 26 : info.header_offset + 30])
+    data[info.header_offset + 30 + n + m + 5] ^= 0xFF  # an invalid deflate stream
+    bad = tmp_path / "flipped.zip"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(ArtefactError, match="not a readable artefact"):
+        load_artefact(bad)
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "[" * 100_000 + "]" * 100_000,
+        '{"format": 2, "golden": ' + '{"a": ' * 50_000 + "1" + "}" * 50_001,
+        '{"format": 2, "x": 1e999999}',
+        b"\xff\xfe{" * 10,
+    ],
+    ids=["nested list", "nested object", "huge number", "bad unicode"],
+)
+def test_refuses_a_hostile_manifest_cleanly(artefact, tmp_path, text) -> None:
+    path, _ = artefact
+    blob, _ = _read(path)
+    bad = tmp_path / "hostile.zip"
+    with zipfile.ZipFile(bad, "w") as z:
+        z.writestr("step.stablehlo", blob)
+        z.writestr("manifest.json", text)
+    with pytest.raises(ArtefactError, match="manifest.json"):
+        load_artefact(bad)
