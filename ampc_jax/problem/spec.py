@@ -27,6 +27,7 @@ import numpy as np
 
 from .data import ProblemData, make_data
 from .errors import ProblemError, ProblemWarning
+from .limits import MAX_MAGNITUDE, check_memory, log10_norm, max_power_log10
 from .topology import Topology
 
 __all__ = ["Agent", "Constraint", "GROUP_TOL", "Objective", "Problem"]
@@ -42,21 +43,53 @@ GROUP_TOL = 1e-10
 # ----------------------------------------------------------------------------
 
 
-def _non_number(value: Any) -> Any:
-    """The first entry of nested lists that is not a number (a string, a
-    boolean, null), or None when every entry is one."""
-    if isinstance(value, (str, bytes, bool, np.bool_)) or value is None:
-        return repr(value) if value is not None else "null"
-    if isinstance(value, np.ndarray):
-        if value.dtype.kind in "biufc":
-            return "a boolean array" if value.dtype.kind == "b" else None
-        value = value.tolist()
-    if isinstance(value, (list, tuple)):
-        for v in value:
-            bad = _non_number(v)
-            if bad is not None:
-                return bad
+def _show(value: Any, width: int = 80) -> str:
+    """``repr(value)`` cut to ``width`` characters; safe for any value (an
+    integer beyond Python's 4,300-digit limit, lists nested past the recursion
+    limit)."""
+    try:
+        text = repr(value)
+    except (ValueError, RecursionError):
+        text = f"<a {type(value).__name__} too large to print>"
+    return text if len(text) <= width else text[: width - 3] + "..."
+
+
+def _non_number(value: Any, depth: int = 2) -> str | None:
+    """What is wrong with nested lists of numbers at most ``depth`` deep: the
+    first entry that is not a number (a string, a boolean, null), or nesting
+    deeper than ``depth`` (every field is a number, vector or matrix); None
+    when every entry is one. Iterative: any nesting is safe."""
+    stack: list[tuple[Any, int]] = [(value, 0)]
+    while stack:
+        v, level = stack.pop()
+        if isinstance(v, (str, bytes, bool, np.bool_)) or v is None:
+            return repr(v)[:40] if v is not None else "null"
+        if isinstance(v, np.ndarray):
+            if v.ndim + level > depth:
+                return f"an array nested {v.ndim + level} deep (at most {depth}: a matrix)"
+            if v.dtype.kind in "biufc":
+                if v.dtype.kind == "b":
+                    return "a boolean array"
+                continue
+            v = v.tolist()
+        if isinstance(v, (list, tuple)):
+            if level >= depth:
+                return f"lists nested deeper than {depth} (a matrix at most)"
+            stack.extend((x, level + 1) for x in reversed(v))
     return None
+
+
+def _magnitude(arr: np.ndarray, field_name: str) -> None:
+    """ProblemError naming ``field_name`` when a finite entry exceeds MAX_MAGNITUDE."""
+    finite = arr[np.isfinite(arr)]
+    if finite.size and float(np.max(np.abs(finite))) > MAX_MAGNITUDE:
+        big = float(np.max(np.abs(finite)))
+        raise ProblemError(
+            f"{field_name}: an entry of magnitude {big:.3g}; every entry must be within "
+            f"+-{MAX_MAGNITUDE:.0e} (the solver squares them: H_j = 2 (Y_u' Qbar Y_u + Rbar) "
+            f"and the squared residuals of eq.Convergence overflow float64 beyond 1.3e154); "
+            f"rescale the units"
+        )
 
 
 def _array(value: Any, field_name: str) -> np.ndarray:
@@ -64,32 +97,42 @@ def _array(value: Any, field_name: str) -> np.ndarray:
         raise ProblemError(f"{field_name}: a number or array is required, got nothing")
     bad = _non_number(value)
     if bad is not None:
-        raise ProblemError(f"{field_name}: expected numbers, got {bad:.40}")
+        raise ProblemError(f"{field_name}: expected numbers, got {bad:.80}")
     try:
         arr = np.asarray(value, dtype=float)
+    except OverflowError:
+        raise ProblemError(
+            f"{field_name}: an integer beyond float64's range (1.8e308); every entry must "
+            f"be within +-{MAX_MAGNITUDE:.0e}"
+        ) from None
     except (TypeError, ValueError) as exc:
         raise ProblemError(
-            f"{field_name}: expected numbers (nested lists, row-major), got {value!r:.80}"
+            f"{field_name}: expected numbers (nested lists, row-major), got {_show(value)}"
         ) from exc
     if not np.all(np.isfinite(arr)):
         bad = "NaN" if np.any(np.isnan(arr)) else "inf"
         raise ProblemError(f"{field_name}: contains {bad}; every entry must be a finite number")
+    _magnitude(arr, field_name)
     return arr
 
 
 def _bound(value: Any, field_name: str, n: int, side: str, hint: str = "") -> np.ndarray:
     """Bounds may be -inf (``side="lower"``) or +inf (upper): no row; never
     NaN, and never the infinity that no input can satisfy."""
-    bad = _non_number(value)
+    bad = _non_number(value, depth=1)
     if bad is not None:
         raise ProblemError(
-            f"{field_name}: expected {n} numbers, got {bad:.40} (no bound: leave the "
+            f"{field_name}: expected {n} numbers, got {bad:.80} (no bound: leave the "
             f"field out, or JSON -Infinity / Infinity)"
         )
     try:
         arr = np.asarray(value, dtype=float)
+    except OverflowError:
+        raise ProblemError(
+            f"{field_name}: an integer beyond float64's range (no bound: +-inf)"
+        ) from None
     except (TypeError, ValueError) as exc:
-        raise ProblemError(f"{field_name}: expected {n} numbers, got {value!r:.80}") from exc
+        raise ProblemError(f"{field_name}: expected {n} numbers, got {_show(value)}") from exc
     if arr.ndim == 0:
         arr = np.full(n, float(arr))
     if arr.shape != (n,):
@@ -103,6 +146,7 @@ def _bound(value: Any, field_name: str, n: int, side: str, hint: str = "") -> np
             f"{field_name}: contains {'+' if wrong > 0 else '-'}inf, which no input "
             f"satisfies; use a number, or {free} for no {side} bound"
         )
+    _magnitude(arr, field_name)
     return arr
 
 
@@ -197,7 +241,7 @@ def _per_step(
 
 def _name(value: Any, field_name: str) -> str:
     if not isinstance(value, str) or not value:
-        raise ProblemError(f"{field_name}: expected a non-empty string name, got {value!r}")
+        raise ProblemError(f"{field_name}: expected a non-empty string name, got {_show(value)}")
     return value
 
 
@@ -329,7 +373,10 @@ class Problem:
                 Objective(o["name"], o["C"], o["Q"], o.get("ref", 0.0), o.get("agents"))
             )
         constraints = []
-        for c, con in enumerate(d.get("constraints") or []):
+        cons_in = d.get("constraints") or []
+        if not isinstance(cons_in, list):
+            raise ProblemError("constraints: expected a list of objects with keys A and b")
+        for c, con in enumerate(cons_in):
             if not isinstance(con, Mapping) or "A" not in con or "b" not in con:
                 raise ProblemError(f"constraints[{c}]: expected an object with keys A and b")
             constraints.append(Constraint(con["A"], con["b"]))
@@ -351,25 +398,32 @@ class Problem:
             text = path.read_text()
         except OSError as exc:
             raise ProblemError(f"problem file {path}: cannot read ({exc.strerror})") from exc
+        except UnicodeDecodeError as exc:
+            raise ProblemError(f"problem file {path}: not UTF-8 text ({exc.reason})") from None
         try:
             d = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise ProblemError(f"problem file {path}: not valid JSON ({exc})") from exc
+        except RecursionError:
+            raise ProblemError(
+                f"problem file {path}: lists or objects nested deeper than a JSON reader "
+                f"follows; a field is at most a matrix (lists two deep)"
+            ) from None
+        except ValueError as exc:  # JSONDecodeError, or an integer of over 4,300 digits
+            raise ProblemError(f"problem file {path}: not valid JSON ({exc})") from None
         return cls.from_dict(d)
 
     def __post_init__(self) -> None:
         horizon = self.horizon
         if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)) or horizon < 1:
-            raise ProblemError(f"horizon: expected an integer >= 1, got {horizon!r}")
+            raise ProblemError(f"horizon: expected an integer >= 1, got {_show(horizon)}")
         horizon = int(horizon)
         A = _array(self.A, "A")
         if A.ndim != 2 or A.shape[0] != A.shape[1]:
             raise ProblemError(f"A: expected a square n_x x n_x matrix, got shape {A.shape}")
         nx = A.shape[0]
-        x0 = _array(self.x0, "x0").reshape(-1) if np.ndim(self.x0) <= 1 else _array(self.x0, "x0")
+        x0 = _array(self.x0, "x0")
+        x0 = x0.reshape(-1) if x0.ndim <= 1 else x0
         if x0.shape != (nx,):
             raise ProblemError(f"x0: expected {nx} numbers (n_x from A), got shape {x0.shape}")
-        w = _per_step(self.w, "w", nx, horizon)
 
         names: list[str] = []
         Bs, Rs, lbs, ubs = [], [], [], []
@@ -405,9 +459,10 @@ class Problem:
         if not names:
             raise ProblemError("agents: at least one agent is required")
 
+        # the objectives' sizes and weights first: nothing of horizon size is
+        # formed before the memory estimate has passed (limits.check_memory)
         obj_names: list[str] = []
-        Cs, Qs, refs, groups = [], [], [], []
-        powers = [np.linalg.matrix_power(A, k) for k in range(horizon)]
+        Cs, Qs = [], []
         for j, o in enumerate(self.objectives):
             if not isinstance(o, Objective):
                 raise ProblemError(
@@ -426,8 +481,23 @@ class Problem:
                 )
             ny = C.shape[0]
             hint = f" (n_y = {ny}: the rows of objectives[{j}].C)"
-            Q = _weight(o.Q, f"objectives[{j}].Q ({name})", ny, definite=False, hint=hint)
-            ref = _per_step(o.ref, f"objectives[{j}].ref ({name})", ny, horizon, hint=hint)
+            Cs.append(C)
+            Qs.append(_weight(o.Q, f"objectives[{j}].Q ({name})", ny, definite=False, hint=hint))
+        if not obj_names:
+            raise ProblemError("objectives: at least one objective is required")
+        check_memory(
+            horizon=horizon, n_x=nx, n_u=sum(B.shape[1] for B in Bs), n_y=[C.shape[0] for C in Cs]
+        )
+        log_power = max_power_log10(A, horizon)
+        _check_hessian_scales(A, Bs, names, Cs, Qs, obj_names, log_power, horizon)
+        w = _per_step(self.w, "w", nx, horizon)
+
+        refs, groups = [], []
+        powers = [np.linalg.matrix_power(A, k) for k in range(horizon)]
+        for j, o in enumerate(self.objectives):
+            name, C = obj_names[j], Cs[j]
+            hint = f" (n_y = {C.shape[0]}: the rows of objectives[{j}].C)"
+            ref = _per_step(o.ref, f"objectives[{j}].ref ({name})", C.shape[0], horizon, hint=hint)
             if o.agents is None:
                 group = tuple(i for i, B in enumerate(Bs) if _influences(C, powers, B))
                 if not group:
@@ -442,9 +512,9 @@ class Problem:
                     )
                 group_l = []
                 for a_name in o.agents:
-                    if a_name not in names:
+                    if not isinstance(a_name, str) or a_name not in names:
                         raise ProblemError(
-                            f"objectives[{j}].agents ({name}): unknown agent {a_name!r}; "
+                            f"objectives[{j}].agents ({name}): unknown agent {_show(a_name)}; "
                             f"known agents are {names}"
                         )
                     if names.index(a_name) in group_l:
@@ -468,12 +538,8 @@ class Problem:
                         ProblemWarning,
                         stacklevel=3,
                     )
-            Cs.append(C)
-            Qs.append(Q)
             refs.append(ref)
             groups.append(group)
-        if not obj_names:
-            raise ProblemError("objectives: at least one objective is required")
         for i, name in enumerate(names):
             if not any(i in g for g in groups):
                 raise ProblemError(
@@ -496,9 +562,10 @@ class Problem:
             offsets = np.cumsum([0] + [B.shape[1] for B in Bs])
             involved = []
             for a_name, coeff in con.A.items():
-                if a_name not in names:
+                if not isinstance(a_name, str) or a_name not in names:
                     raise ProblemError(
-                        f"constraints[{c}].A: unknown agent {a_name!r}; known agents are {names}"
+                        f"constraints[{c}].A: unknown agent {_show(a_name)}; "
+                        f"known agents are {names}"
                     )
                 i = names.index(a_name)
                 M = _matrix(
@@ -580,3 +647,45 @@ def _influences(C: np.ndarray, powers: list[np.ndarray], B: np.ndarray) -> bool:
         if scale > 0 and np.linalg.norm(M) > GROUP_TOL * scale:
             return True
     return False
+
+
+def _check_hessian_scales(
+    A: np.ndarray,
+    Bs: list[np.ndarray],
+    agent_names: list[str],
+    Cs: list[np.ndarray],
+    Qs: list[np.ndarray],
+    obj_names: list[str],
+    log_power: float,
+    horizon: int,
+) -> None:
+    """ProblemError naming the largest factor when some condensed Hessian
+    H_j = 2 (Y_u' Qbar_j Y_u + Rbar) would exceed MAX_MAGNITUDE: its scale is
+    ||Q_j|| ||C_j||^2 max_k ||A^k||^2 max_i ||B_(i)||^2 (Frobenius norms, in logs)."""
+    limit = math.log10(MAX_MAGNITUDE)
+    log_b = [log10_norm(B) for B in Bs]
+    ib = int(np.argmax(log_b))
+    for j, (C, Q) in enumerate(zip(Cs, Qs, strict=True)):
+        parts = {
+            f"objectives[{j}].Q ({obj_names[j]})": log10_norm(Q),
+            f"objectives[{j}].C ({obj_names[j]})": 2 * log10_norm(C),
+            "A": 2 * log_power,
+            f"agents[{ib}].B ({agent_names[ib]})": 2 * log_b[ib],
+        }
+        if any(v == -math.inf for v in parts.values()):
+            continue  # a zero factor: H_j = 2 Rbar
+        total = sum(parts.values())
+        if total <= limit:
+            continue
+        field_name = max(parts, key=lambda k: parts[k])
+        what = (
+            f"max_k ||A^k|| over the horizon (N_p = {horizon}) reaches 1e{log_power:.0f}"
+            if field_name == "A"
+            else f"its norm is 1e{parts[field_name] / (1 if '.Q' in field_name else 2):.0f}"
+        )
+        raise ProblemError(
+            f"{field_name}: {what}, so the condensed Hessian of objectives[{j}] "
+            f"({obj_names[j]}), ||Q_j|| ||C_j||^2 max_k ||A^k||^2 ||B||^2, reaches about "
+            f"1e{total:.0f}, beyond 1e{limit:.0f} (the squared residuals of eq.Convergence "
+            f"overflow float64); rescale the units or shorten the horizon"
+        )

@@ -323,3 +323,85 @@ def test_semidefinite_weight_and_one_sided_bounds_are_accepted():
     np.testing.assert_allclose(p.data().Q[1], [[1.0, 1.0], [1.0, 1.0]])
     # an infinite side makes no constraint row: 8 box rows less the two free sides
     assert p.topology.n_c == 6
+
+
+# ----------------------------------------------------- sizes and magnitudes (issue 29, 11)
+def _to_file(tmp_path, d, name="p.json"):
+    path = tmp_path / name
+    path.write_text(json.dumps(d))
+    return path
+
+
+@pytest.mark.timeout(30)
+def test_a_horizon_beyond_the_machines_memory_is_refused_naming_it(tmp_path):
+    """N_p = 10**6: the condensed forms a solve builds grow as N_p^3 (about 6e19
+    bytes); refused at once, naming the field and the estimate, before any
+    N_p-sized work (the derived groups alone took minutes)."""
+    d = base()
+    d["horizon"] = 10**6
+    with pytest.raises(ProblemError, match=r"^horizon: N_p = 1000000 .* about [\d.]+ [EPTG]B"):
+        Problem.from_json(_to_file(tmp_path, d))
+    # the estimate against the memory the machine has: a horizon that fits passes
+    from ampc_jax.problem.limits import available_memory, condensed_bytes
+
+    avail = available_memory()
+    assert avail is None or avail > condensed_bytes(horizon=5, n_x=3, n_u=4, n_y=(1, 1))
+    Problem.from_dict(base())
+
+
+@pytest.mark.parametrize(
+    "where,value,field",
+    [
+        (("A", 0, 0), 1e308, r"A"),
+        (("objectives", 0, "Q"), [1e308], r"objectives\[0\]\.Q \(pos\)"),
+        (("agents", 1, "R"), [1e200, 0.2], r"agents\[1\]\.R \(b\)"),
+        (("agents", 0, "B", 1, 0), 1e160, r"agents\[0\]\.B \(a\)"),
+        (("x0", 2), -1e300, r"x0"),
+    ],
+)
+def test_absurd_magnitudes_are_refused_naming_the_field(where, value, field):
+    """1e308 in A or Q gave numpy's "Eigenvalues did not converge"; any entry
+    whose square overflows float64 (the residuals of eq.Convergence are
+    squared norms) is refused naming its field."""
+    d = base()
+    node = d
+    for key in where[:-1]:
+        node = node[key]
+    node[where[-1]] = value
+    with pytest.raises(ProblemError, match=rf"^{field}: .*1e\+?150"):
+        Problem.from_dict(d)
+
+
+def test_a_model_whose_prediction_overflows_is_refused_naming_the_field():
+    """Entries each below the limit whose condensed Hessian Y_u' Q Y_u does not
+    fit: A = 10 A_0 over N_p = 80 grows as about 10^79, squared in H_j."""
+    d = base()
+    d["A"] = [[10.0 * x for x in row] for row in d["A"]]
+    d["horizon"] = 80
+    with pytest.raises(ProblemError, match=r"^A: .*A\^k.*1e\+?150"):
+        Problem.from_dict(d)
+    d["horizon"] = 5  # 10^4: fine
+    Problem.from_dict(d)
+
+
+@pytest.mark.parametrize("depth", [50, 5000, 200_000])
+def test_deeply_nested_json_is_refused(tmp_path, depth):
+    """Nesting deeper than a matrix: RecursionError from the JSON reader or
+    the number check before; now a ProblemError naming the file or field."""
+    path = tmp_path / "deep.json"
+    d = base()
+    text = json.dumps(d).replace('"x0": [0.0, 0.0, 0.0]', '"x0": ' + "[" * depth + "]" * depth)
+    path.write_text(text)
+    with pytest.raises(ProblemError, match=r"(x0|deep\.json)"):
+        Problem.from_json(path)
+
+
+def test_integers_beyond_float_are_refused(tmp_path):
+    d = base()
+    d["x0"] = [10**400, 0, 0]
+    with pytest.raises(ProblemError, match=r"^x0: "):
+        Problem.from_dict(d)
+    path = tmp_path / "big.json"
+    path.write_text(json.dumps(base()).replace('"horizon": 5', '"horizon": ' + "9" * 5000))
+    with pytest.raises(ProblemError, match=r"big\.json"):
+        Problem.from_json(path)
