@@ -377,10 +377,23 @@ impl Safety {
         true
     }
 
-    /// Restart the output from 0 Nm (after a transport loss the actuator has
-    /// seen nothing for a while: it ramps up again at the rise rate).
+    /// Restart the output from 0 Nm (after a gap in transmission the
+    /// actuator may have timed out or been re-initialised: it ramps up again
+    /// at the rise rate).
     pub fn restart_output(&mut self) {
         self.output_steps = [0; 4];
+    }
+
+    /// The output on the wire's grid, in steps.
+    pub fn output_steps(&self) -> [i64; 4] {
+        self.output_steps
+    }
+
+    /// Put the output back to `steps`: the limiter advances only on frames
+    /// that reach the wire, so a tick whose frame was not written (or was
+    /// flushed unread) leaves it where the wire last saw it.
+    pub fn set_output_steps(&mut self, steps: [i64; 4]) {
+        self.output_steps = steps;
     }
 
     /// A frame of the stop sequence: `Safe` (or `Fault` if latched),

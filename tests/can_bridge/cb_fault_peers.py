@@ -212,3 +212,162 @@ def read_all(fd: int, seconds: float) -> bytes:
 def burst_after(times: list[float], t_resume: float, window: float) -> int:
     """How many frames arrived within ``window`` seconds after ``t_resume``."""
     return sum(1 for t in times if t_resume <= t <= t_resume + window)
+
+
+class SocketcandBus:
+    """A socketcand server on 127.0.0.1 that behaves as one CAN bus for many
+    clients (real socketcand serves each client from its own process on the
+    same interface): every ``< send >`` read from one client is written to
+    the bus, that is, stamped with the server's clock, recorded in
+    ``frames`` and relayed to every other client in raw mode as
+    ``< frame ID SEC.USEC DATA >`` (python-can's socketcand interface can be
+    one of them). ``< echo >`` is answered as socketcand's ``state_raw.c``
+    does. ``stall()`` stops reading from every client, as a server that
+    stops being scheduled; ``stall_after(n)`` stalls once the n-th frame
+    from now is on the bus and the echo behind it answered: between two of
+    the bridge's ticks, the phase at which a frame handed to TCP at the
+    next tick could only reach the bus when the server resumes."""
+
+    def __init__(self) -> None:
+        self.frames: list[tuple[float, int, bytes]] = []  # (time.time(), id, data)
+        self.errors: list[str] = []
+        self.reading = threading.Event()
+        self.reading.set()
+        self._stall_at: int | None = None
+        self._stall_on_echo = False
+        self._lock = threading.Lock()
+        self._clients: list[socket.socket] = []
+        self._stop = threading.Event()
+        self.sock = socket.create_server(("127.0.0.1", 0))
+        self.sock.settimeout(0.05)
+        self.port = self.sock.getsockname()[1]
+        self.thread = threading.Thread(target=self._accept, daemon=True)
+        self.thread.start()
+
+    def _accept(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, _ = self.sock.accept()
+            except (TimeoutError, OSError):
+                continue
+            threading.Thread(target=self._serve_safely, args=(conn,), daemon=True).start()
+
+    def _serve_safely(self, conn: socket.socket) -> None:
+        try:
+            self._serve(conn)
+        except OSError as e:
+            if not self._stop.is_set():
+                self.errors.append(repr(e))
+        finally:
+            with self._lock:
+                if conn in self._clients:
+                    self._clients.remove(conn)
+            conn.close()
+
+    def _serve(self, conn: socket.socket) -> None:
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        conn.sendall(b"< hi >")
+        for word in (b"open", b"rawmode"):
+            buf = b""
+            while b">" not in buf:
+                chunk = conn.recv(256)
+                if not chunk:
+                    return
+                buf += chunk
+            if word not in buf:
+                self.errors.append(f"expected {word!r}, got {buf!r}")
+                return
+            conn.sendall(b"< ok >")
+        with self._lock:
+            self._clients.append(conn)
+        conn.settimeout(0.01)
+        buf = b""
+        while not self._stop.is_set():
+            if not self.reading.is_set():
+                time.sleep(0.002)
+                continue
+            try:
+                chunk = conn.recv(65536)
+            except TimeoutError:
+                continue
+            if not chunk:
+                return
+            buf += chunk
+            while b">" in buf and self.reading.is_set():
+                i = buf.find(b">")
+                msg, buf = buf[: i + 1], buf[i + 1 :]
+                if b"echo" in msg:
+                    conn.sendall(b"< echo >")
+                    if self._stall_on_echo:
+                        self._stall_on_echo = False
+                        self.reading.clear()
+                    continue
+                m = SEND_RE.search(msg)
+                if m:
+                    self._write(
+                        conn, int(m.group(1), 16), bytes(int(b, 16) for b in m.group(3).split())
+                    )
+
+    def _write(self, sender: socket.socket, ident: int, data: bytes) -> None:
+        now = time.time()
+        with self._lock:
+            self.frames.append((now, ident, data))
+            out = b"< frame %03X %d.%06d %s >" % (
+                ident,
+                int(now),
+                int(now * 1e6) % 1_000_000,
+                data.hex().upper().encode(),
+            )
+            for c in self._clients:
+                if c is not sender:
+                    try:
+                        c.sendall(out)
+                    except OSError:
+                        pass
+            if self._stall_at is not None and len(self.frames) >= self._stall_at:
+                self._stall_at = None
+                self._stall_on_echo = True
+
+    def stall(self) -> None:
+        self.reading.clear()
+
+    def stall_after(self, n_more: int) -> None:
+        with self._lock:
+            self._stall_at = len(self.frames) + n_more
+
+    def resume(self) -> None:
+        self.reading.set()
+
+    def close(self) -> None:
+        self._stop.set()
+        with self._lock:
+            for c in self._clients:
+                try:
+                    c.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+        self.sock.close()
+        self.thread.join(2)
+
+
+def candump_tx(path: str, frame_id: int = 0x101) -> list[tuple[float, bytes]]:
+    """The frames the bridge logged as written (candump ``-l`` format, read by
+    python-can): (realtime stamp, data)."""
+    import can
+
+    return [
+        (m.timestamp, bytes(m.data))
+        for m in can.LogReader(path)
+        if m.arbitration_id == frame_id and not m.is_rx
+    ]
+
+
+def frame_ages(seen: list[tuple[float, bytes]], written: list[tuple[float, bytes]]) -> list[float]:
+    """Age of each frame a peer saw (its receive time minus the time the bridge
+    wrote the same bytes: the latest write of those bytes at or before it)."""
+    ages = []
+    for t, data in seen:
+        cands = [w for w, d in written if d == data and w <= t + 0.005]
+        if cands:
+            ages.append(t - max(cands))
+    return ages

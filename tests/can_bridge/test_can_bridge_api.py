@@ -58,7 +58,8 @@ def test_lifecycle_and_context_manager() -> None:
         time.sleep(0.1)
         s = b.stats()
         assert s["ticks"] >= 5 and s["tx_not_open"] >= 5  # no peer opened the channel
-        assert s["safety_state"] == "safe"  # no command yet
+        # nothing reached the wire: no peer opened the channel
+        assert s["safety_state"] == "not_open" and s["tx_mode"] == "safe"
     assert not b.running
     b.stop()  # idempotent
     assert "slcan-pty:" in repr(b) and b.channel == "slcan-pty:" and b.period_ms == 10.0

@@ -22,7 +22,7 @@ __version__: str
 DEFAULT_CONFIG_TOML: str
 
 Mode = Literal["active", "hold", "safe", "fault"]
-SafetyState = Literal["active", "hold", "safe", "fault", "lost"]
+SafetyState = Literal["active", "hold", "safe", "fault", "lost", "not_open"]
 TransportState = Literal["up", "not_open", "lost"]
 PerWheel = float | Sequence[float]
 
@@ -69,6 +69,7 @@ class Stats(TypedDict):
     limit_events: int
     last_limit_event: str | None
     rate_limited_ticks: int
+    ramp_restarts: int
     transport_state: TransportState
     transport_losses: int
     reconnects: int

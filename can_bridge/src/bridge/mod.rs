@@ -1,7 +1,7 @@
 //! The running bridge, by concept: its configuration (here), the state the
-//! threads and the caller share ([`shared`]), the transmit loop ([`tx`]), the
-//! receive loop and the received state ([`rx`]), the counters ([`stats`]) and
-//! the start/stop life cycle ([`lifecycle`]). No thread ever needs the GIL;
+//! threads and the caller share (`shared`), the transmit loop (`tx`), the
+//! receive loop and the received state (`rx`), the counters (`stats`) and
+//! the start/stop life cycle (`lifecycle`). No thread ever needs the GIL;
 //! the Python thread touches the shared state only through short critical
 //! sections.
 

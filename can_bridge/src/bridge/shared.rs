@@ -19,6 +19,9 @@ pub const SEQ_MAX_STEP: u64 = 1 << 48;
 #[derive(Debug, Default)]
 pub(super) struct CmdSlot {
     pub(super) cmd: Option<Command>,
+    /// The command before `cmd`: still in force at a deadline that `cmd`
+    /// arrived after.
+    pub(super) prev: Option<Command>,
     pub(super) last_seq: Option<u64>,
     pub(super) limit_events: u64,
     pub(super) last_limit_event: Option<String>,
@@ -137,11 +140,25 @@ impl Shared {
             slot.last_limit_event = Some(format!("{} (seq {seq}, clamped)", all.join(", ")));
         }
         slot.last_seq = Some(seq);
+        slot.prev = slot.cmd;
         slot.cmd = Some(Command {
             torques_nm: target,
             ..cmd
         });
         Ok(())
+    }
+
+    /// The command in force at `deadline`: the latest one that arrived by
+    /// then. A command that arrives after a deadline (while its tick is
+    /// being served) takes effect at the next one, so a frame depends on the
+    /// commands and their arrival times only, not on when the thread woke.
+    pub fn command_at(&self, deadline: u64) -> Option<Command> {
+        let slot = lock(&self.cmd);
+        match (slot.cmd, slot.prev) {
+            (Some(c), _) if c.received_ns <= deadline => Some(c),
+            (Some(_), Some(p)) => Some(p),
+            (c, _) => c.filter(|c| c.received_ns <= deadline),
+        }
     }
 
     /// Ask the transmit thread to clear a latched fault.

@@ -34,6 +34,9 @@ pub struct Stats {
     pub last_limit_event: Option<String>,
     /// Ticks on which a rate limit shaped the output.
     pub rate_limited_ticks: u64,
+    /// Gaps in transmission (not open, a write error, the link down or
+    /// lost) that restarted a non-zero output's ramp from zero.
+    pub ramp_restarts: u64,
     /// Transport state.
     pub transport_state: TransportState,
     /// Times the transport was lost.
@@ -74,7 +77,7 @@ pub struct Stats {
     pub log_dropped: u64,
     /// Log lines lost to write errors (full disk, `/dev/full`, a stalled FIFO).
     pub log_errors: u64,
-    /// Mode of the last frame sent.
+    /// Mode of the last frame that reached the wire.
     pub safety_state: Mode,
     /// Whether the received state is currently valid.
     pub state_valid: bool,
@@ -119,6 +122,7 @@ impl Bridge {
             limit_events,
             last_limit_event,
             rate_limited_ticks: tx.rate_limited_ticks,
+            ramp_restarts: tx.ramp_restarts,
             transport_state: tx.transport,
             transport_losses: tx.transport_losses,
             reconnects,

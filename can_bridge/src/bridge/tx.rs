@@ -7,7 +7,7 @@ use crate::codec::{encode_torque_cmd, Mode};
 use crate::e2e;
 use crate::safety::{Safety, SafetyConfig};
 use crate::scheduler::{realtime_ns, Clock, Schedule, TickRecord, TickStats};
-use crate::transport::{Health, Sink, Written};
+use crate::transport::{Gate, Health, Sink, Written};
 use std::sync::atomic::Ordering;
 
 /// State of the transport as the transmit thread sees it.
@@ -44,6 +44,7 @@ pub struct TxCounters {
     pub(super) mode: Mode,
     pub(super) applied: [f64; 4],
     pub(super) rate_limited_ticks: u64,
+    pub(super) ramp_restarts: u64,
     pub(super) transport: TransportState,
     pub(super) transport_losses: u64,
     pub(super) last_error: Option<String>,
@@ -61,6 +62,7 @@ impl TxCounters {
             mode: Mode::Safe,
             applied: [0.0; 4],
             rate_limited_ticks: 0,
+            ramp_restarts: 0,
             transport: TransportState::NotOpen,
             transport_losses: 0,
             last_error: None,
@@ -110,8 +112,19 @@ pub fn run_tx<C: Clock>(
     let mut due = sched.deadline();
     let mut last_good = t0;
     let mut state = TransportState::NotOpen;
+    // The output the wire saw before the last frame written, and that
+    // frame's mode: where the limiter goes back to if the frame is flushed
+    // unread at the next tick.
+    let mut seen_before_last: ([i64; 4], Mode) = ([0; 4], Mode::Safe);
+    // The last tick put no frame on the wire because of a gap (not open, a
+    // write error, the link down or lost).
+    let mut in_gap = true;
     loop {
         let deadline = sched.deadline();
+        if let Some(lead) = sink.probe_lead_ns(p.period_ns) {
+            clock.sleep_until_ns(deadline.saturating_sub(lead));
+            sink.probe();
+        }
         clock.sleep_until_ns(deadline);
         let wake = clock.now_ns();
         if stopping.is_none() && shared.stop.load(Ordering::Acquire) {
@@ -125,25 +138,60 @@ pub fn run_tx<C: Clock>(
                 stale_before = t;
             }
         }
-        // While the transport is lost the output restarts from 0 Nm: the
-        // first frame that gets through ramps up at the rise rate.
-        if state == TransportState::Lost {
+        let before = clock.now_ns();
+        let ready = sink.prepare();
+        let link_up = health.is_none_or(|h| h.link_up.load(Ordering::Acquire));
+        let flushed = ready.as_ref().map_or(0, |r| r.flushed);
+        let gate = ready.as_ref().map(|r| r.gate);
+        let mut tx = lock(&shared.tx);
+        if flushed > 0 {
+            // The last frame never reached the peer: the wire still shows
+            // the one before it.
+            safety.set_output_steps(seen_before_last.0);
+            tx.applied = safety.output();
+            tx.mode = seen_before_last.1;
+        }
+        // A gap in transmission restarts the ramp from zero: the actuator
+        // has seen nothing (a channel not open, a write error, a link down,
+        // reconnecting or lost) and may have timed out or been reset.
+        let gap =
+            !link_up || state == TransportState::Lost || matches!(gate, Err(_) | Ok(Gate::NotOpen));
+        if gap {
+            if !in_gap && safety.output_steps() != [0; 4] {
+                tx.ramp_restarts += 1;
+            }
             safety.restart_output();
         }
-        let latest = lock(&shared.cmd).cmd;
-        let cmd = latest.filter(|c| c.received_ns >= stale_before);
+        drop(tx);
+        let cmd = shared
+            .command_at(deadline)
+            .filter(|c| c.received_ns >= stale_before);
+        let seen = safety.output_steps();
+        let seen_mode = lock(&shared.tx).mode;
         let (mode, torques) = if stopping.is_some() {
             safety.stopping()
         } else {
             safety.step(deadline, cmd.as_ref())
         };
         let frame = encode_torque_cmd(&torques, mode, counter);
-        let before = clock.now_ns();
-        let outcome = match &frame {
-            Ok(f) => sink.send(f),
-            Err(e) => Err(e.clone()),
+        let outcome = match (&ready, &frame) {
+            (Err(e), _) | (Ok(_), Err(e)) => Err(e.clone()),
+            (Ok(r), Ok(f)) => match r.gate {
+                Gate::Open => sink.write(f),
+                Gate::NotOpen => Ok(Written::NotOpen),
+                Gate::Busy => Ok(Written::Dropped),
+            },
         };
         let done = clock.now_ns();
+        let written = matches!(outcome, Ok(Written::Yes));
+        if written {
+            seen_before_last = (seen, seen_mode);
+        } else if outcome.is_err() {
+            safety.restart_output();
+        } else {
+            safety.set_output_steps(seen);
+        }
+        in_gap = gap || outcome.is_err();
         if let Some(n) = stopping.as_mut() {
             if torques == [0.0; 4] || release_frames >= MAX_RELEASE_FRAMES {
                 *n = n.saturating_sub(1);
@@ -151,9 +199,8 @@ pub fn run_tx<C: Clock>(
                 release_frames += 1;
             }
         }
-        let link_up = health.is_none_or(|h| h.link_up.load(Ordering::Acquire));
-        let good = matches!(&outcome, Ok(o) if o.written == Written::Yes && o.flushed == 0);
-        let not_open = matches!(&outcome, Ok(o) if o.written == Written::NotOpen);
+        let good = written && flushed == 0;
+        let not_open = matches!(outcome, Ok(Written::NotOpen));
         if good && link_up {
             last_good = done;
         }
@@ -182,7 +229,6 @@ pub fn run_tx<C: Clock>(
         due = deadline + p.period_ns;
         tx.tick.record_skip(skipped);
         tx.send_max_ns = tx.send_max_ns.max(done.saturating_sub(before));
-        tx.mode = mode;
         tx.rate_limited_ticks = safety.rate_limited_ticks();
         if new_state == TransportState::Lost && state != TransportState::Lost {
             tx.transport_losses += 1;
@@ -192,25 +238,22 @@ pub fn run_tx<C: Clock>(
         shared
             .lost
             .store(state == TransportState::Lost, Ordering::Release);
+        tx.tx_stale_dropped += u64::from(flushed);
         match outcome {
-            Ok(o) => {
-                tx.tx_stale_dropped += u64::from(o.flushed);
-                match o.written {
-                    Written::Yes => {
-                        tx.tx_frames += 1;
-                        tx.applied = torques;
-                        counter = e2e::next_counter(counter);
-                        if let (Some(l), Ok(f)) = (log, &frame) {
-                            l.log(realtime_ns(), f, Dir::Tx);
-                        }
-                    }
-                    Written::Dropped => {
-                        tx.tx_stale_dropped += 1;
-                        counter = e2e::next_counter(counter);
-                    }
-                    Written::NotOpen => tx.tx_not_open += 1,
+            Ok(Written::Yes) => {
+                tx.tx_frames += 1;
+                tx.applied = torques;
+                tx.mode = mode;
+                counter = e2e::next_counter(counter);
+                if let (Some(l), Ok(f)) = (log, &frame) {
+                    l.log(realtime_ns(), f, Dir::Tx);
                 }
             }
+            Ok(Written::Dropped) => {
+                tx.tx_stale_dropped += 1;
+                counter = e2e::next_counter(counter);
+            }
+            Ok(Written::NotOpen) => tx.tx_not_open += 1,
             Err(e) => {
                 tx.tx_errors += 1;
                 counter = e2e::next_counter(counter);
@@ -228,10 +271,11 @@ mod tests {
     use crate::codec::WHEEL_TORQUE_CMD;
     use crate::error::Result;
     use crate::frame::CanFrame;
-    use crate::transport::Outcome;
+    use crate::transport::{Outcome, Ready};
     use std::cell::RefCell;
     use std::sync::atomic::AtomicU64;
 
+    /// A clock that jumps to each deadline plus a scripted lateness, and
     /// advances by a scripted work time inside `send`.
     struct FakeClock {
         now: AtomicU64,
@@ -252,12 +296,22 @@ mod tests {
 
     type Script<'a> = Box<dyn Fn(usize, &Shared, &FakeClock) -> Outcome + 'a>;
 
-    /// Records frames; runs a script per tick (by tick number) that may set
-    /// commands, request a stop, burn time, and says what the transport did.
+    /// A scripted write error (the link broke): `prepare` fails.
+    const FAIL: Outcome = Outcome {
+        written: Written::NotOpen,
+        flushed: u32::MAX,
+    };
+
+    /// Runs a script per tick (by tick number) that may set commands,
+    /// request a stop, burn time, and says what the transport does with this
+    /// tick's frame; records every frame written, with its tick.
     struct ScriptSink<'a> {
         clock: &'a FakeClock,
         shared: &'a Shared,
         frames: RefCell<Vec<(u64, CanFrame, Outcome)>>,
+        ticks: Vec<usize>,
+        tick: usize,
+        current: Outcome,
         script: Script<'a>,
         closed: bool,
     }
@@ -266,11 +320,29 @@ mod tests {
     unsafe impl Send for ScriptSink<'_> {}
 
     impl Sink for ScriptSink<'_> {
-        fn send(&mut self, f: &CanFrame) -> Result<Outcome> {
-            let n = self.frames.borrow().len();
-            let o = (self.script)(n, self.shared, self.clock);
-            self.frames.borrow_mut().push((self.clock.now_ns(), *f, o));
-            Ok(o)
+        fn prepare(&mut self) -> Result<Ready> {
+            let o = (self.script)(self.tick, self.shared, self.clock);
+            self.tick += 1;
+            self.current = o;
+            if o == FAIL {
+                return Err(crate::error::Error::Transport("scripted failure".into()));
+            }
+            let gate = match o.written {
+                Written::Yes => Gate::Open,
+                Written::NotOpen => Gate::NotOpen,
+                Written::Dropped => Gate::Busy,
+            };
+            Ok(Ready {
+                gate,
+                flushed: o.flushed,
+            })
+        }
+        fn write(&mut self, f: &CanFrame) -> Result<Written> {
+            self.frames
+                .borrow_mut()
+                .push((self.clock.now_ns(), *f, self.current));
+            self.ticks.push(self.tick - 1);
+            Ok(Written::Yes)
         }
         fn close(&mut self) {
             self.closed = true;
@@ -298,9 +370,23 @@ mod tests {
         )
     }
 
-    type Run = (Vec<(u64, CanFrame, Outcome)>, Shared, bool);
+    type Run = (Vec<(u64, CanFrame, Outcome)>, Shared, bool, Vec<usize>);
 
-    /// Run the loop with a script; returns (frames, shared, closed).
+    /// Each tick's frame decoded, `None` where nothing was written.
+    fn by_tick(
+        frames: &[(u64, CanFrame, Outcome)],
+        ticks: &[usize],
+    ) -> Vec<Option<(u8, u8, [f64; 4])>> {
+        let n = ticks.last().map_or(0, |t| t + 1);
+        let mut out = vec![None; n];
+        for ((_, f, _), t) in frames.iter().zip(ticks) {
+            out[*t] = Some(decode(f));
+        }
+        out
+    }
+
+    /// Run the loop with a script; returns (frames written, shared, closed,
+    /// the tick of each frame).
     fn run(
         late: impl Fn(u64) -> u64 + Send + 'static,
         script: impl Fn(usize, &Shared, &FakeClock) -> Outcome,
@@ -316,14 +402,18 @@ mod tests {
             clock: &clock,
             shared: &shared,
             frames: RefCell::new(vec![]),
+            ticks: vec![],
+            tick: 0,
+            current: Outcome::YES,
             script: Box::new(script),
             closed: false,
         };
         run_tx(&clock, params(), &shared, &mut sink, None, None);
         let closed = sink.closed;
         let frames = std::mem::take(&mut *sink.frames.borrow_mut());
+        let ticks = std::mem::take(&mut sink.ticks);
         drop(sink);
-        (frames, shared, closed)
+        (frames, shared, closed, ticks)
     }
 
     /// A controller that sends a fresh command every tick for 40 ticks, then
@@ -344,7 +434,7 @@ mod tests {
 
     #[test]
     fn ticks_on_absolute_deadlines_and_stops_with_safe_frames() {
-        let (frames, shared, closed) = run(|k| (k % 7) * 100_000, controller);
+        let (frames, shared, closed, _) = run(|k| (k % 7) * 100_000, controller);
         assert!(closed);
         // 81 ticks before the stop request is seen, then 3 zero frames.
         assert_eq!(frames.len(), 84);
@@ -418,7 +508,7 @@ mod tests {
 
     #[test]
     fn overrun_skips_deadlines_and_lateness_counts_the_whole_wait() {
-        let (frames, shared, _) = run(
+        let (frames, shared, _, _) = run(
             |_| 0,
             |n, sh, c| {
                 if n == 5 {
@@ -442,7 +532,7 @@ mod tests {
 
     #[test]
     fn a_transport_that_takes_nothing_is_lost_then_recovers_from_zero() {
-        let (frames, shared, _) = run(
+        let (frames, shared, _, ticks) = run(
             |_| 0,
             |n, sh, c| {
                 let _ = sh.set_command([100.0; 4], n as u64 + 1, c.now_ns());
@@ -460,12 +550,14 @@ mod tests {
         assert_eq!(tx.transport_losses, 1);
         assert_eq!(tx.tx_stale_dropped, 10);
         drop(tx);
-        let d: Vec<_> = frames.iter().map(|(_, f, _)| decode(f)).collect();
-        // Lost after 200 ms (4 ticks) without a frame through; from then on
-        // the output restarts from 0 Nm and ramps at the rise rate.
-        assert_eq!(d[14].2[0], 100.0);
-        assert_eq!(d[25].2[0], 10.0);
-        assert_eq!(d[26].2[0], 20.0);
+        let d = by_tick(&frames, &ticks);
+        // Ticks 15..24 put nothing on the wire; lost after 200 ms (4 ticks)
+        // without a frame through; the first frame that gets through ramps
+        // from 0 Nm at the rise rate.
+        assert_eq!(d[14].unwrap().2[0], 100.0);
+        assert!(d[15..25].iter().all(Option::is_none));
+        assert_eq!(d[25].unwrap().2[0], 10.0);
+        assert_eq!(d[26].unwrap().2[0], 20.0);
     }
 
     #[test]
@@ -491,8 +583,215 @@ mod tests {
         let d: Vec<_> = frames.iter().map(|(_, f, _)| decode(f)).collect();
         assert_eq!(d[30].1, Mode::Fault as u8);
         assert_eq!(d[31].1, Mode::Safe as u8);
-        assert_eq!(d[33].1, Mode::Safe as u8);
-        assert_eq!(d[34].1, Mode::Active as u8);
-        assert_eq!(d[34].2, [10.0; 4]);
+        assert_eq!(d[32].1, Mode::Safe as u8);
+        // the command handed over at tick 33 (by its deadline) is in force there
+        assert_eq!(d[33].1, Mode::Active as u8);
+        assert_eq!(d[33].2, [10.0; 4]);
+    }
+
+    /// A fresh 100 Nm command every tick, the transport doing `what(n)`;
+    /// stop after tick 30.
+    fn held_at_100(what: impl Fn(usize) -> Outcome) -> Run {
+        run(
+            |_| 0,
+            move |n, sh, c| {
+                let _ = sh.set_command([100.0; 4], n as u64 + 1, c.now_ns());
+                if n == 30 {
+                    sh.request_stop();
+                }
+                what(n)
+            },
+        )
+    }
+
+    #[test]
+    fn a_channel_that_opens_late_gets_a_ramp_from_zero() {
+        // Issue 29 item 1: the limiter does not advance while nothing goes out.
+        let (frames, shared, _, ticks) = held_at_100(|n| {
+            if n < 10 {
+                Outcome::NOT_OPEN
+            } else {
+                Outcome::YES
+            }
+        });
+        let d = by_tick(&frames, &ticks);
+        assert!(d[..10].iter().all(Option::is_none));
+        assert_eq!(d[10].unwrap().1, Mode::Active as u8);
+        assert_eq!(d[10].unwrap().2, [10.0; 4]);
+        assert_eq!(d[11].unwrap().2, [20.0; 4]);
+        let tx = lock(&shared.tx);
+        assert_eq!(tx.tx_not_open, 10);
+    }
+
+    #[test]
+    fn the_wire_state_is_what_the_wire_saw() {
+        // While nothing goes out, the reported mode is that of the last
+        // frame written (none yet: the initial safe), never "active".
+        let shared = Shared::new(&config());
+        shared.open_for_commands();
+        let clock = FakeClock {
+            now: AtomicU64::new(1_000 * MS),
+            late: Box::new(|_| 0),
+            wakes: AtomicU64::new(0),
+        };
+        let modes = RefCell::new(vec![]);
+        let mut sink = ScriptSink {
+            clock: &clock,
+            shared: &shared,
+            frames: RefCell::new(vec![]),
+            ticks: vec![],
+            tick: 0,
+            current: Outcome::YES,
+            script: Box::new(|n, sh: &Shared, c: &FakeClock| {
+                let _ = sh.set_command([100.0; 4], n as u64 + 1, c.now_ns());
+                let t = lock(&sh.tx);
+                modes.borrow_mut().push((t.mode, t.transport, t.applied));
+                drop(t);
+                if n == 12 {
+                    sh.request_stop();
+                }
+                if n < 8 {
+                    Outcome::NOT_OPEN
+                } else {
+                    Outcome::YES
+                }
+            }),
+            closed: false,
+        };
+        run_tx(&clock, params(), &shared, &mut sink, None, None);
+        drop(sink);
+        let m = modes.into_inner();
+        // read at the start of each tick: what the ticks before it left
+        for (mode, transport, applied) in &m[1..8] {
+            assert_eq!(*mode, Mode::Safe);
+            assert_eq!(*transport, TransportState::NotOpen);
+            assert_eq!(*applied, [0.0; 4]);
+        }
+        assert_eq!(m[9].0, Mode::Active);
+        assert_eq!(m[9].2, [10.0; 4]);
+    }
+
+    #[test]
+    fn a_reopened_channel_gets_a_ramp_from_zero() {
+        let (frames, shared, _, ticks) = held_at_100(|n| {
+            if (15..20).contains(&n) {
+                Outcome::NOT_OPEN
+            } else {
+                Outcome::YES
+            }
+        });
+        let d = by_tick(&frames, &ticks);
+        assert_eq!(d[14].unwrap().2, [100.0; 4]);
+        assert_eq!(d[20].unwrap().2, [10.0; 4]);
+        assert_eq!(lock(&shared.tx).ramp_restarts, 1);
+    }
+
+    #[test]
+    fn a_frame_flushed_unread_does_not_advance_the_ramp() {
+        // Tick 5 finds tick 4's frame unread and flushes it: the wire still
+        // shows tick 3's 40 Nm, so tick 5 moves one step from there.
+        let (frames, shared, _, ticks) = held_at_100(|n| {
+            if n == 5 {
+                Outcome {
+                    written: Written::Yes,
+                    flushed: 1,
+                }
+            } else {
+                Outcome::YES
+            }
+        });
+        let d = by_tick(&frames, &ticks);
+        let t = |k: usize| d[k].unwrap().2[0];
+        assert_eq!((t(3), t(4), t(5), t(6)), (40.0, 50.0, 50.0, 60.0));
+        assert_eq!(lock(&shared.tx).tx_stale_dropped, 1);
+    }
+
+    #[test]
+    fn a_frame_held_back_by_the_age_rule_does_not_advance_the_ramp() {
+        let (frames, _, _, ticks) = held_at_100(|n| {
+            if n == 5 {
+                Outcome::DROPPED
+            } else {
+                Outcome::YES
+            }
+        });
+        let d = by_tick(&frames, &ticks);
+        assert!(d[5].is_none());
+        assert_eq!((d[4].unwrap().2[0], d[6].unwrap().2[0]), (50.0, 60.0));
+    }
+
+    #[test]
+    fn a_write_error_restarts_the_ramp_from_zero() {
+        let (frames, shared, _, ticks) = held_at_100(|n| if n == 12 { FAIL } else { Outcome::YES });
+        let d = by_tick(&frames, &ticks);
+        assert_eq!(d[11].unwrap().2, [100.0; 4]);
+        assert!(d[12].is_none());
+        assert_eq!(d[13].unwrap().2, [10.0; 4]);
+        let tx = lock(&shared.tx);
+        assert_eq!((tx.tx_errors, tx.ramp_restarts), (1, 1));
+    }
+
+    use proptest::prelude::*;
+
+    fn cases() -> u32 {
+        std::env::var("CAN_BRIDGE_PROPTEST_CASES")
+            .ok()
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(300)
+    }
+
+    fn arb_outcome() -> impl Strategy<Value = Outcome> {
+        prop_oneof![
+            6 => Just(Outcome::YES),
+            1 => Just(Outcome { written: Written::Yes, flushed: 1 }),
+            1 => Just(Outcome::DROPPED),
+            1 => Just(Outcome::NOT_OPEN),
+            1 => Just(FAIL),
+        ]
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(cases()))]
+
+        /// Whatever the transport does, the sequence the wire saw (frames
+        /// written, less those flushed unread) moves by at most one step a
+        /// frame (rise/release 10 Nm, the safe release 20 Nm), or restarts
+        /// within one rise step of zero after a gap.
+        #[test]
+        fn the_wire_only_ever_sees_ramps(
+            ticks in proptest::collection::vec((arb_outcome(), proptest::array::uniform4(-150.0f64..150.0), any::<bool>()), 5..80),
+        ) {
+            let n = ticks.len();
+            let plan = ticks.clone();
+            let (frames, _, _, at) = run(
+                |_| 0,
+                move |k, sh, c| {
+                    let (o, t, fresh) = plan.get(k).copied().unwrap_or((Outcome::YES, [0.0; 4], false));
+                    if fresh {
+                        let _ = sh.set_command(t, k as u64 + 1, c.now_ns());
+                    }
+                    if k + 1 == n {
+                        sh.request_stop();
+                    }
+                    o
+                },
+            );
+            // A flush retracts the last frame written, once.
+            let mut wire: Vec<[f64; 4]> = vec![[0.0; 4]];
+            let mut retractable = false;
+            for ((_, f, o), k) in frames.iter().zip(&at) {
+                if o.flushed > 0 && retractable {
+                    wire.pop();
+                }
+                let v = decode(f).2;
+                let prev = *wire.last().unwrap_or(&[0.0; 4]);
+                for (a, b) in prev.iter().zip(&v) {
+                    prop_assert!((b - a).abs() <= 20.0 + 1e-9 || b.abs() <= 10.0 + 1e-9,
+                        "tick {k}: {prev:?} -> {v:?}");
+                }
+                wire.push(v);
+                retractable = true;
+            }
+        }
     }
 }

@@ -551,6 +551,7 @@ pub fn stats_dict<'py>(py: Python<'py>, s: &Stats) -> PyResult<Bound<'py, PyDict
     d.set_item("limit_events", s.limit_events)?;
     d.set_item("last_limit_event", s.last_limit_event.as_deref())?;
     d.set_item("rate_limited_ticks", s.rate_limited_ticks)?;
+    d.set_item("ramp_restarts", s.ramp_restarts)?;
     d.set_item("transport_state", s.transport_state.name())?;
     d.set_item("transport_losses", s.transport_losses)?;
     d.set_item("reconnects", s.reconnects)?;
@@ -571,13 +572,14 @@ pub fn stats_dict<'py>(py: Python<'py>, s: &Stats) -> PyResult<Bound<'py, PyDict
     d.set_item("bus_errors", s.bus_errors)?;
     d.set_item("log_dropped", s.log_dropped)?;
     d.set_item("log_errors", s.log_errors)?;
-    let lost = s.transport_state == TransportState::Lost;
+    // What the wire saw: nothing while the transport is lost or the channel
+    // not open, else the mode of the last frame that reached it.
     d.set_item(
         "safety_state",
-        if lost && s.running {
-            "lost"
-        } else {
-            s.safety_state.name()
+        match s.transport_state {
+            TransportState::Lost if s.running => "lost",
+            TransportState::NotOpen if s.running => "not_open",
+            _ => s.safety_state.name(),
         },
     )?;
     d.set_item("tx_mode", s.safety_state.name())?;

@@ -32,6 +32,37 @@ pub enum Written {
     Dropped,
 }
 
+/// Whether this tick's frame may be written, as the age rule decides before
+/// the frame is built (so the limiter knows what the wire saw).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Gate {
+    /// Write it.
+    Open,
+    /// The peer has not opened the channel (SLCAN device role).
+    NotOpen,
+    /// The peer has not taken the previous frame (or has not answered a
+    /// probe): a new one would only queue behind it and arrive stale.
+    Busy,
+}
+
+/// What [`Sink::prepare`] found before a tick's frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Ready {
+    /// Whether the frame may be written.
+    pub gate: Gate,
+    /// The previous tick's frames flushed from the transport's queue for
+    /// their age: they never reached the peer.
+    pub flushed: u32,
+}
+
+impl Ready {
+    /// Open, nothing flushed.
+    pub const OPEN: Ready = Ready {
+        gate: Gate::Open,
+        flushed: 0,
+    };
+}
+
 /// Outcome of a send that did not fail.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Outcome {
@@ -92,10 +123,38 @@ impl Default for Health {
     }
 }
 
-/// Sending half. `send` never waits: it makes one non-blocking attempt.
+/// Sending half, used once per tick in two steps: [`Sink::prepare`]
+/// applies the age rule to what the previous writes left behind, then, if
+/// it says so, [`Sink::write`] makes one non-blocking attempt with the frame
+/// built in between. Neither ever waits.
 pub trait Sink: Send {
-    /// Send one frame (or drop it for the age rule).
-    fn send(&mut self, frame: &CanFrame) -> Result<Outcome>;
+    /// Before the tick's frame is built: flush what the peer has not taken
+    /// since the last tick where the kernel allows it, and say whether a
+    /// frame may go out now.
+    fn prepare(&mut self) -> Result<Ready>;
+    /// Write the tick's frame (after `prepare` said [`Gate::Open`]):
+    /// [`Written::Yes`], or [`Written::Dropped`] if the kernel took none of it.
+    fn write(&mut self, frame: &CanFrame) -> Result<Written>;
+    /// How long before each deadline this sink wants [`Sink::probe`]
+    /// called (a liveness probe whose answer gates the frame), if at all.
+    fn probe_lead_ns(&self, _period_ns: u64) -> Option<u64> {
+        None
+    }
+    /// Ask the peer for a sign of life ahead of the deadline.
+    fn probe(&mut self) {}
+    /// `prepare` and `write` in one call (tests and tools).
+    fn send(&mut self, frame: &CanFrame) -> Result<Outcome> {
+        let r = self.prepare()?;
+        let written = match r.gate {
+            Gate::Open => self.write(frame)?,
+            Gate::NotOpen => Written::NotOpen,
+            Gate::Busy => Written::Dropped,
+        };
+        Ok(Outcome {
+            written,
+            flushed: r.flushed,
+        })
+    }
     /// Last words before the transport closes (e.g. SLCAN `C`).
     fn close(&mut self) {}
 }

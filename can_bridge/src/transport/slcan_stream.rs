@@ -30,7 +30,7 @@
 //! `start()` fails (`test_f8_slcan_without_an_adapter_is_refused_at_start`).
 
 use super::fd::{make_raw, Fd};
-use super::{out_queue, Health, Opened, Outcome, RxItem, Sink, Source, Written};
+use super::{out_queue, Gate, Health, Opened, Ready, RxItem, Sink, Source, Written};
 use crate::channel::{baud_constant, slcan_bitrate_code};
 use crate::error::{clip, Error, Result};
 use crate::frame::CanFrame;
@@ -256,38 +256,34 @@ impl SlcanSink {
 }
 
 impl Sink for SlcanSink {
-    fn send(&mut self, frame: &CanFrame) -> Result<Outcome> {
-        let line = slcan::encode(frame);
+    fn prepare(&mut self) -> Result<Ready> {
         match self.role.clone() {
             Role::Device(ch) => {
                 if !ch.open.load(Ordering::Acquire) {
-                    return Ok(Outcome::NOT_OPEN);
+                    return Ok(Ready {
+                        gate: Gate::NotOpen,
+                        flushed: 0,
+                    });
                 }
                 let port = self.port.clone();
                 let _g = port.lock();
-                let mut flushed = 0;
-                match self.port.unread_lines() {
-                    Unread::Nothing => {}
+                Ok(match self.port.unread_lines() {
+                    Unread::Nothing => Ready::OPEN,
                     Unread::WholeLines => {
                         self.port.flush_unread();
-                        flushed = 1;
+                        Ready {
+                            gate: Gate::Open,
+                            flushed: 1,
+                        }
                     }
                     // the peer is reading a line now: never cut it; the new
                     // line queues behind it, unless older lines wait there too
-                    Unread::MidLine(false) => {}
-                    Unread::MidLine(true) => {
-                        return Ok(Outcome {
-                            written: Written::Dropped,
-                            flushed,
-                        })
-                    }
-                }
-                let written = if self.write_frame(line.as_bytes())? {
-                    Written::Yes
-                } else {
-                    Written::Dropped
-                };
-                Ok(Outcome { written, flushed })
+                    Unread::MidLine(false) => Ready::OPEN,
+                    Unread::MidLine(true) => Ready {
+                        gate: Gate::Busy,
+                        flushed: 0,
+                    },
+                })
             }
             Role::Host(acks) => {
                 let port = self.port.clone();
@@ -305,22 +301,32 @@ impl Sink for SlcanSink {
                     if acks.held.fetch_add(1, Ordering::AcqRel) % REPROBE_TICKS == 0 {
                         let _ = self.port.write_once(b"V\r");
                     }
-                    return Ok(Outcome {
-                        written: Written::Dropped,
+                    return Ok(Ready {
+                        gate: Gate::Busy,
                         flushed,
                     });
                 }
-                acks.replied.store(false, Ordering::Release);
-                acks.held.store(0, Ordering::Release);
-                let written = if self.write_frame(line.as_bytes())? {
-                    acks.wrote.store(true, Ordering::Release);
-                    Written::Yes
-                } else {
-                    Written::Dropped
-                };
-                Ok(Outcome { written, flushed })
+                Ok(Ready {
+                    gate: Gate::Open,
+                    flushed,
+                })
             }
         }
+    }
+
+    fn write(&mut self, frame: &CanFrame) -> Result<Written> {
+        let line = slcan::encode(frame);
+        let port = self.port.clone();
+        let _g = port.lock();
+        if let Role::Host(acks) = &self.role {
+            acks.replied.store(false, Ordering::Release);
+            acks.held.store(0, Ordering::Release);
+        }
+        let ok = self.write_frame(line.as_bytes())?;
+        if let (true, Role::Host(acks)) = (ok, &self.role) {
+            acks.wrote.store(true, Ordering::Release);
+        }
+        Ok(if ok { Written::Yes } else { Written::Dropped })
     }
 
     fn close(&mut self) {
@@ -672,6 +678,7 @@ pub fn open_serial(path: &str, baud: u32, bitrate: u32) -> Result<Opened> {
 
 #[cfg(test)]
 mod tests {
+    use super::super::Outcome;
     use super::*;
 
     fn open_slave(path: &str) -> Fd {

@@ -3,7 +3,7 @@
 //! with a timeout because `close` does not wake a blocked read.
 
 use super::fd::Fd;
-use super::{out_queue, Health, Opened, Outcome, RxItem, Sink, Source};
+use super::{out_queue, Gate, Health, Opened, Ready, RxItem, Sink, Source, Written};
 use crate::error::{Error, Result};
 use crate::frame::CanFrame;
 use std::ffi::CString;
@@ -98,13 +98,18 @@ struct CanSink {
 }
 
 impl Sink for CanSink {
-    fn send(&mut self, frame: &CanFrame) -> Result<Outcome> {
+    fn prepare(&mut self) -> Result<Ready> {
         // A frame still in the socket's queue a period after it was written
         // (bus-off, lost arbitration, a stuck controller) is not joined by a
-        // newer one that would go out stale behind it: drop this one.
-        if out_queue(self.fd.raw()).is_some_and(|n| n > 0) {
-            return Ok(Outcome::DROPPED);
-        }
+        // newer one that would go out stale behind it.
+        let busy = out_queue(self.fd.raw()).is_some_and(|n| n > 0);
+        Ok(Ready {
+            gate: if busy { Gate::Busy } else { Gate::Open },
+            flushed: 0,
+        })
+    }
+
+    fn write(&mut self, frame: &CanFrame) -> Result<Written> {
         let raw = to_raw(frame);
         let size = std::mem::size_of::<RawCanFrame>();
         // SAFETY: raw is a valid can_frame of `size` bytes.
@@ -125,7 +130,7 @@ impl Sink for CanSink {
             };
             return Err(Error::io(&format!("{}: {why}", self.what), &e));
         }
-        Ok(Outcome::YES)
+        Ok(Written::Yes)
     }
 }
 

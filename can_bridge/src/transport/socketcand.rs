@@ -1,26 +1,34 @@
 //! socketcand client over TCP (raw mode).
 //!
-//! **Age rule.** TCP cannot take back what it has queued, so nothing stale is
-//! queued: each frame goes out with a `< echo >` (socketcand answers it in
-//! raw mode, `state_raw.c`), and once the server has answered one, no new
-//! frame is written until the last echo came back; nor while more than
-//! [`MAX_UNACKED`] bytes sit unacknowledged in the socket (`SIOCOUTQ`). A
-//! server that stops reading finds at most the frame in flight when it
-//! resumes (`test_f1_no_stale_frames_from_a_stalled_socketcand_server`).
+//! **Age rule.** TCP cannot take back what the server's kernel has taken (on
+//! Linux a reader gets queued bytes even after the connection is reset, and
+//! socketcand's `state_raw.c` relays whatever it reads), so nothing is handed
+//! to a server that may not be reading: each frame goes out with a
+//! `< echo >` (socketcand answers it in raw mode), and once the server is
+//! known to answer echoes, a probe `< echo >` goes out ahead of each
+//! deadline ([`Sink::probe_lead_ns`]: three measured round trips plus 1 ms,
+//! within 2 ms..half a period); the frame is written only if every echo is
+//! answered by the deadline, and never while more than [`MAX_UNACKED`]
+//! bytes sit unacknowledged in the socket (`SIOCOUTQ`). A server that stops
+//! reading between two ticks gets no frame to hold
+//! (`test_i2_a_stalled_socketcand_server_never_puts_a_stale_frame_on_the_bus`);
+//! one that stops within the probe's lead before a deadline can still find
+//! that one frame when it resumes.
 //!
 //! **Reconnect.** A closed or broken connection marks the link down at once
 //! (the bridge reports the transport lost on its next tick); the receive
 //! thread reconnects with a backoff of 100 ms doubling to [`MAX_BACKOFF`]
 //! (`test_f4_a_restarted_socketcand_server_is_reconnected`).
 
-use super::{out_queue, Health, Opened, Outcome, RxItem, Sink, Source};
+use super::{out_queue, Gate, Health, Opened, Ready, RxItem, Sink, Source, Written};
 use crate::error::{clip, Error, Result};
 use crate::frame::CanFrame;
+use crate::scheduler::monotonic_ns;
 use crate::socketcand::{encode_send, Decoder, Event};
 use std::collections::VecDeque;
 use std::io::{self, Read, Write};
 use std::net::{TcpStream, ToSocketAddrs};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -187,8 +195,12 @@ struct Link {
     tx: Mutex<Option<TcpStream>>,
     /// The server has answered an echo: its answers can be waited for.
     echo_known: AtomicBool,
-    /// An echo is out and not yet answered.
-    echo_pending: AtomicBool,
+    /// Echoes written and not yet answered.
+    echoes_out: AtomicU32,
+    /// When the last echo was written (monotonic ns).
+    echo_sent_ns: AtomicU64,
+    /// Round trip of an echo, a decaying maximum (ns; `u64::MAX`: none yet).
+    rtt_ns: AtomicU64,
     /// Connections made so far (a new one discards a message left half
     /// sent on the old one).
     generation: AtomicU64,
@@ -197,6 +209,37 @@ struct Link {
 }
 
 impl Link {
+    /// Note an echo written now.
+    fn echo_sent(&self) {
+        self.echoes_out.fetch_add(1, Ordering::AcqRel);
+        self.echo_sent_ns.store(monotonic_ns(), Ordering::Release);
+    }
+
+    /// Note an echo's answer: one fewer out, and the round trip of the last
+    /// one written if it was the only one out.
+    fn echo_answered(&self) {
+        self.echo_known.store(true, Ordering::Release);
+        let was = self
+            .echoes_out
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+                Some(n.saturating_sub(1))
+            })
+            .unwrap_or(0);
+        if was == 1 {
+            let rtt = monotonic_ns().saturating_sub(self.echo_sent_ns.load(Ordering::Acquire));
+            let old = self.rtt_ns.load(Ordering::Acquire);
+            let decayed = if old == u64::MAX { 0 } else { old - old / 8 };
+            self.rtt_ns.store(rtt.max(decayed), Ordering::Release);
+        }
+    }
+
+    /// A fresh connection: nothing out, nothing known about its echoes.
+    fn reset_echoes(&self) {
+        self.echo_known.store(false, Ordering::Release);
+        self.echoes_out.store(0, Ordering::Release);
+        self.rtt_ns.store(u64::MAX, Ordering::Release);
+    }
+
     fn down(&self) {
         self.health.link_up.store(false, Ordering::Release);
         if let Some(s) = self.tx.lock().unwrap_or_else(|e| e.into_inner()).take() {
@@ -204,6 +247,9 @@ impl Link {
         }
     }
 }
+
+/// Shortest lead of the probe before a deadline, ns.
+const PROBE_LEAD_MIN_NS: u64 = 2_000_000;
 
 /// Ticks a frame may be withheld for a missing echo before a bare
 /// `< echo >` is sent again (a lost answer must not hold frames forever).
@@ -216,23 +262,17 @@ struct TcpSink {
     held: u32,
 }
 
-impl Sink for TcpSink {
-    fn send(&mut self, frame: &CanFrame) -> Result<Outcome> {
-        let link = self.link.clone();
-        if !link.health.link_up.load(Ordering::Acquire) {
-            return Err(Error::Transport(format!(
-                "{}: connection lost; reconnecting",
-                link.what
-            )));
-        }
-        // The receive thread holds this only to swap in a new connection.
-        let Ok(mut guard) = link.tx.try_lock() else {
-            return Ok(Outcome::DROPPED);
-        };
+impl TcpSink {
+    /// The connection to write on, with a message cut by a full buffer on
+    /// it finished first; `Ok(None)` if it cannot be written now.
+    fn stream<'a>(
+        &mut self,
+        guard: &'a mut std::sync::MutexGuard<'_, Option<TcpStream>>,
+    ) -> Result<Option<&'a mut TcpStream>> {
         let Some(stream) = guard.as_mut() else {
-            return Ok(Outcome::DROPPED);
+            return Ok(None);
         };
-        let generation = link.generation.load(Ordering::Acquire);
+        let generation = self.link.generation.load(Ordering::Acquire);
         if generation != self.generation {
             self.generation = generation;
             self.writer = MessageWriter::default();
@@ -241,37 +281,121 @@ impl Sink for TcpSink {
         if self.writer.pending() > 0 {
             match self.writer.flush(stream, 0) {
                 Ok(true) => {}
-                Ok(false) => return Ok(Outcome::DROPPED),
-                Err(e) => {
-                    drop(guard);
-                    link.down();
-                    return Err(Error::io(&format!("{} send", link.what), &e));
-                }
+                Ok(false) => return Ok(None),
+                Err(e) => return Err(Error::io(&format!("{} send", self.link.what), &e)),
             }
         }
+        Ok(Some(stream))
+    }
+
+    fn lost(&self) -> Error {
+        Error::Transport(format!("{}: connection lost; reconnecting", self.link.what))
+    }
+}
+
+impl Sink for TcpSink {
+    fn prepare(&mut self) -> Result<Ready> {
+        let link = self.link.clone();
+        if !link.health.link_up.load(Ordering::Acquire) {
+            return Err(self.lost());
+        }
+        let busy = Ready {
+            gate: Gate::Busy,
+            flushed: 0,
+        };
+        // The receive thread holds this only to swap in a new connection.
+        let Ok(mut guard) = link.tx.try_lock() else {
+            return Ok(busy);
+        };
+        let stream = match self.stream(&mut guard) {
+            Ok(Some(s)) => s,
+            Ok(None) => return Ok(busy),
+            Err(e) => {
+                drop(guard);
+                link.down();
+                return Err(e);
+            }
+        };
         use std::os::fd::AsRawFd;
         let waiting_echo =
-            link.echo_known.load(Ordering::Acquire) && link.echo_pending.load(Ordering::Acquire);
+            link.echo_known.load(Ordering::Acquire) && link.echoes_out.load(Ordering::Acquire) > 0;
         if waiting_echo || out_queue(stream.as_raw_fd()).is_some_and(|n| n > MAX_UNACKED) {
             self.held += 1;
-            if waiting_echo && self.held % REPROBE_TICKS == 0 {
-                let _ = self.writer.send(stream, b"< echo >", 0);
+            if waiting_echo
+                && self.held % REPROBE_TICKS == 0
+                && self.writer.send(stream, b"< echo >", 0).is_ok()
+            {
+                link.echo_sent();
             }
-            return Ok(Outcome::DROPPED);
+            return Ok(busy);
         }
         self.held = 0;
+        Ok(Ready::OPEN)
+    }
+
+    fn write(&mut self, frame: &CanFrame) -> Result<Written> {
+        let link = self.link.clone();
+        let Ok(mut guard) = link.tx.try_lock() else {
+            return Ok(Written::Dropped);
+        };
+        let stream = match self.stream(&mut guard) {
+            Ok(Some(s)) => s,
+            Ok(None) => return Ok(Written::Dropped),
+            Err(e) => {
+                drop(guard);
+                link.down();
+                return Err(e);
+            }
+        };
         let mut msg = encode_send(frame);
         msg.push_str("< echo >");
         match self.writer.send(stream, msg.as_bytes(), 0) {
             Ok(()) => {
-                link.echo_pending.store(true, Ordering::Release);
-                Ok(Outcome::YES)
+                link.echo_sent();
+                Ok(Written::Yes)
             }
-            Err(e) if e.kind() == io::ErrorKind::WouldBlock => Ok(Outcome::DROPPED),
+            Err(e) if e.kind() == io::ErrorKind::WouldBlock => Ok(Written::Dropped),
             Err(e) => {
                 drop(guard);
                 link.down();
                 Err(Error::io(&format!("{} send", link.what), &e))
+            }
+        }
+    }
+
+    /// Once the server is known to answer echoes: a probe ahead of each deadline, never less than three round trips (measured,
+    /// a decaying maximum) plus 1 ms, at most half a period.
+    fn probe_lead_ns(&self, period_ns: u64) -> Option<u64> {
+        if !self.link.echo_known.load(Ordering::Acquire) {
+            return None;
+        }
+        let rtt = self.link.rtt_ns.load(Ordering::Acquire);
+        let half = period_ns / 2;
+        Some(if rtt == u64::MAX {
+            half
+        } else {
+            rtt.saturating_mul(3)
+                .saturating_add(1_000_000)
+                .clamp(PROBE_LEAD_MIN_NS.min(half), half)
+        })
+    }
+
+    /// Ask the server for an echo ahead of the deadline, unless one is out
+    /// already: the frame goes out only once it is answered, so a server
+    /// that stopped reading since the last tick gets no frame to hold.
+    fn probe(&mut self) {
+        let link = self.link.clone();
+        if !link.health.link_up.load(Ordering::Acquire)
+            || link.echoes_out.load(Ordering::Acquire) > 0
+        {
+            return;
+        }
+        let Ok(mut guard) = link.tx.try_lock() else {
+            return;
+        };
+        if let Ok(Some(stream)) = self.stream(&mut guard) {
+            if self.writer.send(stream, b"< echo >", 0).is_ok() {
+                link.echo_sent();
             }
         }
     }
@@ -302,10 +426,7 @@ fn push_event(pending: &mut VecDeque<RxItem>, link: &Link, ev: Event) {
         Event::Frame(f) => pending.push_back(RxItem::Frame(f)),
         Event::Malformed => pending.push_back(RxItem::Malformed),
         Event::Error(_) => pending.push_back(RxItem::BusError),
-        Event::Other(w) if w == "echo" => {
-            link.echo_known.store(true, Ordering::Release);
-            link.echo_pending.store(false, Ordering::Release);
-        }
+        Event::Other(w) if w == "echo" => link.echo_answered(),
         Event::Hi | Event::Ok | Event::Other(_) => {}
     }
 }
@@ -332,8 +453,7 @@ impl TcpSource {
                 let rx = stream
                     .try_clone()
                     .map_err(|e| Error::io(&format!("{}: clone socket", self.link.what), &e))?;
-                self.link.echo_known.store(false, Ordering::Release);
-                self.link.echo_pending.store(false, Ordering::Release);
+                self.link.reset_echoes();
                 *self.link.tx.lock().unwrap_or_else(|e| e.into_inner()) = Some(stream);
                 self.link.generation.fetch_add(1, Ordering::AcqRel);
                 self.stream = Some(rx);
@@ -527,7 +647,9 @@ pub fn open(host: &str, port: u16, bus: &str) -> Result<Opened> {
     let link = Arc::new(Link {
         tx: Mutex::new(Some(stream)),
         echo_known: AtomicBool::new(false),
-        echo_pending: AtomicBool::new(false),
+        echoes_out: AtomicU32::new(0),
+        echo_sent_ns: AtomicU64::new(0),
+        rtt_ns: AtomicU64::new(u64::MAX),
         generation: AtomicU64::new(0),
         health: health.clone(),
         what,
@@ -561,6 +683,7 @@ pub fn open(host: &str, port: u16, bus: &str) -> Result<Opened> {
 
 #[cfg(test)]
 mod tests {
+    use super::super::Outcome;
     use super::*;
     use std::net::TcpListener;
 
@@ -708,7 +831,9 @@ mod tests {
         let link = Arc::new(Link {
             tx: Mutex::new(Some(client)),
             echo_known: AtomicBool::new(false),
-            echo_pending: AtomicBool::new(false),
+            echoes_out: AtomicU32::new(0),
+            echo_sent_ns: AtomicU64::new(0),
+            rtt_ns: AtomicU64::new(u64::MAX),
             generation: AtomicU64::new(0),
             health: Arc::new(Health::default()),
             what: "test".into(),
