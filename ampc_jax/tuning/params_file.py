@@ -15,7 +15,12 @@ Format ``ampc-params/1``::
 every objective, or one per objective of the example in its order);
 ``relaxation`` is the over-relaxation alpha in (0, 2). A ``null`` (or missing)
 entry leaves the default in place. ``settings`` replaces fields of the
-example's settings (weights and bounds, by name). ``ampc simulate``, ``ampc
+example's settings (weights and bounds, by name).
+
+Bounds, each with its reason in the refusal: ``rho_scale`` within
+[1e-6, 1e6] (:data:`RHO_SCALE_RANGE`); every numeric setting within a factor
+1e6 of the example's default (:data:`SETTINGS_FACTOR`; 0 where the field
+allows it); ``horizon`` at most 10 s of prediction (:data:`PREDICTION_MAX_S`). ``ampc simulate``, ``ampc
 solve``, ``ampc run`` and ``ampc export`` read it with ``--params FILE``.
 Every field is validated on reading (ValueError naming the field).
 """
@@ -30,6 +35,9 @@ from typing import Any, NamedTuple
 
 __all__ = [
     "PARAMS_FORMAT",
+    "PREDICTION_MAX_S",
+    "RHO_SCALE_RANGE",
+    "SETTINGS_FACTOR",
     "TunedParams",
     "apply_params",
     "read_params",
@@ -39,6 +47,27 @@ __all__ = [
 
 PARAMS_FORMAT = "ampc-params/1"
 """The ``format`` tag of a tuned-parameters file."""
+
+RHO_SCALE_RANGE = (1e-6, 1e6)
+"""The factors on eq.opt_ro's rho_j* a file may hold. Reason: rho_j* =
+sqrt(lambda_min lambda_max) / 2 of H_j, so beyond 1e6 either way one of rho_j I
+and H_j is under 1e-6 of the other in the local step's K_j = H_j + rho_j I
+(well-conditioned H_j), a few float32 ulps (eps 1.2e-7): the step ignores its
+objective (too large: a 'converged' first iterate far from the optimum, as
+1e308 gave) or the consensus (too small: no iteration cap is reached)."""
+
+SETTINGS_FACTOR = 1e6
+"""How far a numeric setting may move from the example's default, either way.
+Reason: the examples' weights are scaled so a unit tracking error or a
+full-range torque costs about 1 (R_(i) = 1/T_max^2); a factor f moves the
+conditioning of H_j by up to f, and beyond 1e6 that is past what float32
+(eps 1.2e-7) resolves; a torque bound 1e6 times the actuator's is no actuator."""
+
+PREDICTION_MAX_S = 10.0
+"""Longest prediction, N_p dt in seconds. Reason: the examples' models are
+linearised at the current operating point (eq.CC_system, eq.VSC_system), which
+a vehicle leaves within seconds, and the condensed forms grow as N_p^3
+(:func:`~ampc_jax.problem.limits.condensed_bytes`)."""
 
 _FORMULATIONS = ("local_explicit", "fully_distributed", "virtual_center", "integrated", "none")
 _KEYS = ("format", "example", "formulation", "solver", "settings", "provenance")
@@ -63,10 +92,25 @@ class TunedParams(NamedTuple):
     provenance: dict[str, Any] | None = None
 
 
+def _show(value: Any, width: int = 80) -> str:
+    """``repr(value)`` cut to ``width``; safe for integers beyond Python's
+    4,300-digit limit and for nesting past the recursion limit."""
+    try:
+        text = repr(value)
+    except (ValueError, RecursionError):
+        return f"<a {type(value).__name__} too large to print>"
+    return text if len(text) <= width else text[: width - 3] + "..."
+
+
 def _number(name: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"{name}: expected a number, got {value!r:.80}")
-    v = float(value)
+        raise ValueError(f"{name}: expected a number, got {_show(value)}")
+    try:
+        v = float(value)
+    except OverflowError:
+        raise ValueError(
+            f"{name}: expected a finite number, got an integer beyond float64's range"
+        ) from None
     if not math.isfinite(v):
         raise ValueError(f"{name}: expected a finite number, got {value!r}")
     return v
@@ -84,10 +128,19 @@ def _rho_scale(value: Any) -> float | tuple[float, ...] | None:
         vals = tuple(_number(f"{name}[{k}]", v) for k, v in enumerate(value))
     else:
         vals = (_number(name, value),)
+    lo, hi = RHO_SCALE_RANGE
     for k, v in enumerate(vals):
+        where = name if not isinstance(value, (list, tuple)) else f"{name}[{k}]"
         if v <= 0:
-            where = name if len(vals) == 1 and not isinstance(value, list) else f"{name}[{k}]"
             raise ValueError(f"{where}: expected a positive number, got {v!r}")
+        if not lo <= v <= hi:
+            raise ValueError(
+                f"{where}: expected a factor in [{lo:.0e}, {hi:.0e}] on eq.opt_ro's rho_j*, "
+                f"got {v:.3g}: beyond 1e6 either way one of rho_j I and H_j is under 1e-6 of "
+                f"the other in the local step (a few float32 ulps, eps 1.2e-7), so the step "
+                f"ignores its objective and stops at once far from the optimum (too large) or "
+                f"ignores the consensus and never converges (too small)"
+            )
     return vals[0] if not isinstance(value, (list, tuple)) else vals
 
 
@@ -106,11 +159,11 @@ def _settings(value: Any) -> dict[str, Any] | None:
     if value is None:
         return None
     if not isinstance(value, Mapping):
-        raise ValueError(f"settings: expected an object (name -> number), got {value!r:.80}")
+        raise ValueError(f"settings: expected an object (name -> number), got {_show(value)}")
     out: dict[str, Any] = {}
     for key, v in value.items():
         if not isinstance(key, str) or not key:
-            raise ValueError(f"settings: expected field names, got {key!r}")
+            raise ValueError(f"settings: expected field names, got {_show(key)}")
         name = f"settings.{key}"
         if hasattr(v, "tolist"):
             v = v.tolist()
@@ -129,24 +182,24 @@ def validate_params(doc: Any) -> TunedParams:
     if unknown:
         raise ValueError(f"{unknown[0]}: unknown field; expected only {list(_KEYS)}")
     if doc.get("format") != PARAMS_FORMAT:
-        raise ValueError(f"format: expected {PARAMS_FORMAT!r}, got {doc.get('format')!r:.80}")
+        raise ValueError(f"format: expected {PARAMS_FORMAT!r}, got {_show(doc.get('format'))}")
     ex = doc.get("example")
     if ex is not None and (not isinstance(ex, str) or not ex):
-        raise ValueError(f"example: expected an example name or null, got {ex!r:.80}")
+        raise ValueError(f"example: expected an example name or null, got {_show(ex)}")
     form = doc.get("formulation", "local_explicit")
     if form not in _FORMULATIONS:
-        raise ValueError(f"formulation: expected one of {list(_FORMULATIONS)}, got {form!r:.80}")
+        raise ValueError(f"formulation: expected one of {list(_FORMULATIONS)}, got {_show(form)}")
     solver = doc.get("solver", {})
     if solver is None:
         solver = {}
     if not isinstance(solver, Mapping):
-        raise ValueError(f"solver: expected an object, got {solver!r:.80}")
+        raise ValueError(f"solver: expected an object, got {_show(solver)}")
     extra = sorted(set(solver) - {"rho_scale", "relaxation"})
     if extra:
         raise ValueError(f"solver.{extra[0]}: unknown field; expected rho_scale, relaxation")
     prov = doc.get("provenance")
     if prov is not None and not isinstance(prov, Mapping):
-        raise ValueError(f"provenance: expected an object, got {prov!r:.80}")
+        raise ValueError(f"provenance: expected an object, got {_show(prov)}")
     return TunedParams(
         example=ex,
         formulation=form,
@@ -215,9 +268,16 @@ def read_params(path: str | Path) -> TunedParams:
         text = Path(path).read_text()
     except OSError as exc:
         raise ValueError(f"params: cannot read {path} ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"params: {path} is not UTF-8 text ({exc.reason})") from None
     try:
         doc = json.loads(text)
-    except json.JSONDecodeError as exc:
+    except RecursionError:
+        raise ValueError(
+            f"params: {path} nests lists or objects deeper than a JSON reader follows "
+            f"(a field is a number, a list of numbers or an object of them)"
+        ) from None
+    except ValueError as exc:  # JSONDecodeError, or an integer of over 4,300 digits
         raise ValueError(f"params: {path} is not JSON ({exc})") from None
     return validate_params(doc)
 
@@ -262,12 +322,47 @@ def apply_params(config: Any, tuned: TunedParams, *, keep: tuple[str, ...] = ())
                 raise ValueError(f"settings.{key}: expected an integer, got {value!r}")
             value = kind(int(value))
         fields[key] = value
+    _check_settings_bounds(settings, fields, config.example)
     try:
         new = settings.replace(**fields)
         new.validate()
     except (TypeError, ValueError) as exc:
         raise ValueError(f"settings.{exc}") from None
     return replace(out, settings=new)
+
+
+def _check_settings_bounds(settings: Any, fields: dict[str, Any], example: str) -> None:
+    """ValueError naming ``settings.<field>`` for a value outside its bound, with
+    the reason: numbers within :data:`SETTINGS_FACTOR` of the example's default
+    (0 stays allowed: the example's own validation says where), the horizon
+    within :data:`PREDICTION_MAX_S` of prediction."""
+    default = type(settings)()
+    dt = float(fields.get("dt", settings.dt))
+    for key, value in fields.items():
+        base = getattr(default, key)
+        if isinstance(value, list) or isinstance(base, bool) or not isinstance(value, (int, float)):
+            continue  # the example's validation names a wrong kind
+        if key == "horizon":
+            steps = int(PREDICTION_MAX_S / dt) if dt > 0 else 0
+            if value > steps:
+                raise ValueError(
+                    f"settings.horizon: expected N_p with N_p dt <= {PREDICTION_MAX_S:g} s "
+                    f"({steps} steps of {dt:g} s), got {_show(value)}: the {example} example's "
+                    f"model is linearised at the current operating point, so a longer "
+                    f"prediction means nothing, and the condensed forms grow as N_p^3"
+                )
+            continue
+        base = float(base)
+        if value == 0 or base == 0 or not math.isfinite(float(value)):
+            continue
+        if not base / SETTINGS_FACTOR <= abs(float(value)) <= base * SETTINGS_FACTOR:
+            raise ValueError(
+                f"settings.{key}: expected a value within a factor {SETTINGS_FACTOR:.0e} of "
+                f"the {example} example's {base:.3g}, got {float(value):.3g}: its weights are "
+                f"scaled so a unit error or a full-range torque costs about 1, a factor beyond "
+                f"1e6 moves the conditioning of H_j past what float32 (eps 1.2e-7) resolves, "
+                f"and a torque bound beyond it is no actuator"
+            )
 
 
 def _jsonable(value: Any) -> Any:

@@ -85,3 +85,66 @@ def test_simulate_uses_the_params_file(tmp_path, capsys):
     )  # fmt: skip
     assert code == 2
     assert f"--params {path}: example: " in capsys.readouterr().err
+
+
+# ------------------------------------------------------- bounds that say why (issue 29, 10)
+def _doc(**fields):
+    return {"format": "ampc-params/1", **fields}
+
+
+@pytest.mark.timeout(60)
+def test_params_file_bounds_say_why(tmp_path, capsys):
+    """rho_scale 1e308 and q_yrt 1e308 were accepted (simulate stopped after one
+    iteration 144 Nm off), 10**400 raised OverflowError and nesting
+    RecursionError: each is refused naming the field, with the bound's reason."""
+    from ampc_jax.closed_loop import config_for
+    from ampc_jax.tuning.params_file import apply_params
+
+    cfg = config_for("cruise_lane_change")
+    path = tmp_path / "params.json"
+    path.write_text(json.dumps(_doc(solver={"rho_scale": [1.0, 1e308]})))
+    with pytest.raises(ValueError, match=r"^solver\.rho_scale\[1\]: .*\[1e-06, 1e\+06\].*float32"):
+        read_params(path)
+    path.write_text(json.dumps(_doc(solver={"rho_scale": 1e-9})))
+    with pytest.raises(ValueError, match=r"^solver\.rho_scale: .*never converges"):
+        read_params(path)
+    path.write_text(json.dumps(_doc(example="cruise", settings={"q_yrt": 1e308})))
+    with pytest.raises(ValueError, match=r"^settings\.q_yrt: .*factor 1e\+06 of the cruise"):
+        apply_params(cfg, read_params(path))
+    path.write_text(json.dumps(_doc(settings={"r_dtr": 1e-30})))
+    with pytest.raises(ValueError, match=r"^settings\.r_dtr: "):
+        apply_params(cfg, read_params(path))
+    path.write_text(json.dumps(_doc(settings={"horizon": 10**6})))
+    with pytest.raises(ValueError, match=r"^settings\.horizon: .*10 s"):
+        apply_params(cfg, read_params(path))
+    # a tuned value well inside the bounds still applies
+    path.write_text(json.dumps(_doc(solver={"rho_scale": 1e5}, settings={"q_yrt": 1e9})))
+    assert apply_params(cfg, read_params(path)).settings.q_yrt == 1e9
+    texts = {
+        "huge.json": '{"format": "ampc-params/1", "solver": {"rho_scale": 1' + "0" * 400 + "}}",
+        "digits.json": '{"format": "ampc-params/1", "solver": {"relaxation": 1' + "0" * 5000 + "}}",
+        "deep.json": '{"format": "ampc-params/1", "settings": {"q_yrt": '
+        + "[" * 100_000
+        + "]" * 100_000
+        + "}}",
+        "shallow.json": '{"format": "ampc-params/1", "settings": {"q_yrt": '
+        + "[" * 500
+        + "]" * 500
+        + "}}",
+    }
+    for name, text in texts.items():
+        bad = tmp_path / name
+        bad.write_text(text)
+        with pytest.raises(ValueError, match=r"^(params|solver|settings)"):
+            apply_params(cfg, read_params(bad))
+    # through the command line: one line, exit 2, the file and the field named
+    cases = [("huge.json", "solver.rho_scale"), ("deep.json", "params"), ("params.json", "")]
+    path.write_text(json.dumps(_doc(example="cruise", settings={"q_yrt": 1e308})))
+    cases[-1] = ("params.json", "settings.q_yrt")
+    for name, field in cases:
+        argv = ["simulate", "cruise_lane_change", "--params", str(tmp_path / name)]
+        code = main([*argv, "--quiet", "--out", str(tmp_path / "out")])
+        err = capsys.readouterr().err
+        assert code == 2 and "Traceback" not in err, err
+        assert err.startswith(f"ampc: error: --params {tmp_path / name}: {field}"), err
+        assert len(err.strip().splitlines()) == 1, err
