@@ -138,7 +138,11 @@ def _cpu_list(text: str) -> tuple[int, ...]:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    """``ampc run``: the controller at 20 Hz next to the bridge."""
+    """``ampc run``: the controller at 20 Hz next to the bridge.
+
+    Order: the flags and an artefact's file checked (exit 2, nothing started),
+    the channel opened (a missing device: exit 2 at once), the plant started,
+    the step compiled (an artefact's golden pair checked: exit 2), the loop."""
     import os
 
     if args.cpus:
@@ -150,9 +154,11 @@ def cmd_run(args: argparse.Namespace) -> int:
         # the step then runs in the (real-time) calling thread, not a worker's
         jax.config.update("jax_cpu_enable_async_dispatch", False)
 
+    from ..runtime.artefact import ArtefactError, read_artefact
     from ..runtime.faults import CONTROLLER_FAULTS
-    from ..runtime.runner import RunOptions, run_controller
+    from ..runtime.runner import ChannelError, Prepared, RunOptions, run_controller
     from ..runtime.step import RuntimeStep
+    from ..vehicle import SCENARIOS
 
     try:
         cfg = _config(args)
@@ -166,28 +172,36 @@ def cmd_run(args: argparse.Namespace) -> int:
     if problem:
         return fail(problem)
     out = Path(args.out)
-    t0 = time.perf_counter()
+    duration = _run_duration(args)
+    try:
+        options = RunOptions(
+            duration=duration, lead_ms=args.lead_ms, faults=faults, rt_priority=args.rt_priority
+        )
+    except ValueError as exc:
+        return fail(flag_error(exc, {"lead_ms": "--lead-ms", "duration": "--duration"}))
+    art = None
     if args.artefact:
-        from ..runtime.artefact import ArtefactError, load_artefact
-        from ..vehicle import SCENARIOS
-
+        # every check short of compiling, before the channel opens
         try:
-            art = load_artefact(
+            art = read_artefact(
                 args.artefact,
                 step.config_hash(),
                 step=step,
                 golden_bus=_golden_bus(SCENARIOS[args.scenario]),
+                scenario=args.scenario,
             )
         except ArtefactError as exc:
             return fail(f"--artefact: {exc}")
-        # the state starts from this process's cold state, never from the file
-        fn, leaves = art.compiled(), step.init_leaves()
-        source = f"artefact {args.artefact}"
-    else:
-        fn, leaves = step.compiled(), step.init_leaves()
-        source = "compiled in process"
-    print(f"controller step ready ({source}, {time.perf_counter() - t0:.1f} s)", flush=True)
-    duration = _run_duration(args)
+    source = f"artefact {args.artefact}" if art is not None else "compiled in process"
+
+    def prepare() -> Prepared:
+        t0 = time.perf_counter()
+        # an artefact's step is compiled and checked against its golden pair; the
+        # state starts from this process's cold state, never from the file
+        fn = art.compiled() if art is not None else step.compiled()
+        print(f"controller step ready ({source}, {time.perf_counter() - t0:.1f} s)", flush=True)
+        return Prepared(fn, step.init_leaves(), step.jnp_dtype)
+
     plant_cmd = None
     if args.with_plant:
         plant_cmd = [
@@ -207,8 +221,6 @@ def cmd_run(args: argparse.Namespace) -> int:
         ]
         for f in args.plant_fault or ():
             plant_cmd += ["--fault", f]
-        from ..vehicle import SCENARIOS
-
         if duration > SCENARIOS[args.scenario].duration:
             plant_cmd.append("--repeat")
         if args.plant_cpus:
@@ -225,38 +237,45 @@ def cmd_run(args: argparse.Namespace) -> int:
         "commit": _commit(),
         "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
     }
-    try:
-        options = RunOptions(
-            duration=duration, lead_ms=args.lead_ms, faults=faults, rt_priority=args.rt_priority
-        )
-    except ValueError as exc:
-        return fail(flag_error(exc, {"lead_ms": "--lead-ms", "duration": "--duration"}))
     progress = None if args.quiet else (lambda line: print(line, flush=True))
     try:
         log = run_controller(
-            fn,
-            leaves,
+            prepare,
             args.channel,
             out,
             options,
             meta=meta,
             plant_cmd=plant_cmd,
             progress=progress,
-            dtype=step.jnp_dtype,
         )
+    except ChannelError as exc:
+        return fail(f"--channel: {exc}")
+    except ArtefactError as exc:
+        return fail(f"--artefact: {exc}")
     except (TimeoutError, RuntimeError, OSError, ValueError) as exc:
         return fail(f"run: {exc}", 1)
     s = log.summary
-    if "error" in s:
-        print(f"ampc: error: run: {s['error']} (logs written to {out})", file=sys.stderr)
-        return 1
-    print(
-        f"ran {s['ticks']} ticks: sent {s['sent']}, misses {s['misses']}, skipped "
-        f"{s['skipped'] or 0}; compute median {s['compute_ms_median']} ms, p99 "
-        f"{s['compute_ms_p99']} ms; bridge {s['bridge']['safety_state']}"
-    )
+    print(_run_line(s))
     print(f"wrote {out / 'ticks.parquet'}, {out / 'run.json'}, {out / 'bridge.log'}")
+    if s["state"] == "error":
+        return fail(f"run: {s['error']} (logs written to {out})", 1)
+    if s.get("stopped_by") == "SIGINT":
+        return fail(f"interrupted (logs written to {out})", 130)
     return 0
+
+
+def _ms(x: float | None) -> str:
+    return "-" if x is None else f"{x:.2f}"
+
+
+def _run_line(s: dict[str, Any]) -> str:
+    """``ampc run``'s closing line: the counts and the compute times, formatted."""
+    skipped = ", ".join(f"{k} {v}" for k, v in sorted(s["skipped"].items())) or "none"
+    return (
+        f"ran {s['ticks']} ticks: sent {s['sent']}, misses {s['misses']}, skipped {skipped}; "
+        f"compute median {_ms(s['compute_ms_median'])} ms, p99 {_ms(s['compute_ms_p99'])} ms; "
+        f"bridge {s['bridge']['safety_state']}"
+    )
 
 
 def _run_duration(args: argparse.Namespace) -> float:
@@ -357,6 +376,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         rho = tuple(float(x) for x in items)
         if not all(np.isfinite(r) and r > 0 for r in rho):
             return fail(f"--rho-scale: expected positive finite numbers, got {args.rho_scale!r}")
+    progress = lambda line: print(line, flush=True)  # noqa: E731
     try:
         res = replay_run(
             Path(args.log),
@@ -364,16 +384,29 @@ def cmd_replay(args: argparse.Namespace) -> int:
             rho_scales=rho,
             formulations=tuple(args.formulation or ()),
             float32=args.float32,
+            progress=progress,
         )
     except (OSError, ValueError) as exc:
         return fail(f"replay: {exc}")
-    d = res["determinism"]
+    d, lg = res["determinism"], res["log"]
+    if not lg["complete"]:
+        print(
+            f"ampc: warning: {args.log} did not finish (run.json says {lg['state']!r}: killed?); "
+            f"replayed the {lg['ticks']} ticks its {lg['source']} holds",
+            file=sys.stderr,
+        )
+    for note in lg["notes"]:
+        print(f"ampc: warning: {note}", file=sys.stderr)
     if res.get("environment_mismatch"):
         print(
             f"ampc: warning: the run's environment differs from this one (run, now): "
             f"{res['environment_mismatch']}",
             file=sys.stderr,
         )
+    print(
+        f"checked {lg['ticks']} ticks of {lg['source']} against run.json and "
+        f"{lg['frames_checked']} framed commands against bridge.log"
+    )
     print(
         f"replayed {d['ticks']} ticks: {d['identical']} commands identical bit for bit, "
         f"{d['differ']} differ (max |dT| {d['max_abs_diff_nm']:g} Nm)"

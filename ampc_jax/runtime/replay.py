@@ -1,11 +1,16 @@
 """``ampc replay``: a logged run re-run offline, bit for bit, and with other settings.
 
+First the logs are checked (:mod:`~.runcheck`: run.json's fields and digests,
+the ticks against its counts and against the bridge's candump log); a log
+that does not add up is refused, naming what. A run that did not finish (killed)
+is replayed from its journal, as far as it reaches.
+
 The determinism check: the run's configuration (``run.json``: scenario,
 formulation, dtype, configuration hash) is rebuilt, its step compiled as the
-run compiled it, and called in the run's order on the bus vectors of
-``ticks.parquet`` (a tick that did not step leaves the warm state as it was,
-as in the run); every command must come out identical bit for bit (the
-float64 values compared with ``np.array_equal``).
+run compiled it, and called in the run's order on the logged bus vectors (a
+tick that did not step leaves the warm state as it was, as in the run); every
+command must come out identical bit for bit (the float64 values compared with
+``np.array_equal``).
 
 The what-if: the same bus vectors through the controller with other rho
 scales (one ``vmap`` over the scales of one ``lax.scan`` over the ticks, the
@@ -18,6 +23,8 @@ not where the vehicle would have gone).
 from __future__ import annotations
 
 import json
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -26,9 +33,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..closed_loop import config_for
+from .runcheck import check_run
 from .runner import environment
 from .signals import BUS_FIELDS, bus_measurement
 from .step import RuntimeStep
+from .ticklog import RunLogError
 
 __all__ = ["load_run", "replay_run"]
 
@@ -36,17 +45,11 @@ WHEELS = ("FL", "FR", "RL", "RR")
 
 
 def load_run(log_dir: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """``run.json`` and the columns of ``ticks.parquet`` of a run directory."""
-    import pyarrow.parquet as pq
-
-    meta_path, ticks_path = log_dir / "run.json", log_dir / "ticks.parquet"
-    for p in (meta_path, ticks_path):
-        if not p.is_file():
-            raise ValueError(f"{log_dir}: no {p.name} (expected an `ampc run` output directory)")
-    meta = json.loads(meta_path.read_text())
-    table = pq.read_table(ticks_path).to_pydict()
-    cols = {k: np.asarray(v) for k, v in table.items()}
-    return meta, cols
+    """``run.json`` and the tick log's columns of a run directory, once they passed
+    every check of :func:`~.runcheck.check_run` (RunLogError, a ValueError, if not).
+    A run that did not finish gives the ticks of its journal."""
+    run = check_run(Path(log_dir))
+    return run.meta, run.cols
 
 
 def _config(meta: dict[str, Any], **overrides: Any) -> Any:
@@ -78,13 +81,28 @@ def replay_run(
     rho_scales: tuple[float, ...] | None = None,
     formulations: tuple[str, ...] = (),
     float32: bool = False,
+    progress: Callable[[str], Any] | None = None,
 ) -> dict[str, Any]:
-    """Replay the run in ``log_dir``; write ``replay.json`` and ``replay.parquet`` to ``out``."""
-    meta, cols = load_run(log_dir)
+    """Replay the run in ``log_dir``; write ``replay.json`` and ``replay.parquet`` to ``out``.
+
+    The logs are checked first (:func:`~.runcheck.check_run`: RunLogError, naming
+    what does not add up). ``progress(text)`` gets a line when the step is
+    compiled and about once a second while the ticks replay, with an ETA
+    measured from the replay alone (compilation excluded).
+    """
+    run = check_run(Path(log_dir))
+    meta, cols = run.meta, run.cols
+    stepped = cols["stepped"].astype(bool)
+    if not stepped.any():
+        why = cols["reason"][0] if len(cols["reason"]) else "no ticks"
+        raise RunLogError(
+            f"{log_dir}: no tick of the run stepped the controller (the first said: {why!r:.80}); "
+            "nothing to replay"
+        )
     cfg = _config(meta)
     step = RuntimeStep(cfg, meta["dtype"])
     if step.config_hash() != meta["config_hash"]:
-        raise ValueError(
+        raise RunLogError(
             f"{log_dir}: the run's controller configuration ({meta['config_hash'][:12]}...) is "
             f"not what this version builds for {meta['scenario']!r} ({step.config_hash()[:12]}...)"
         )
@@ -95,17 +113,24 @@ def replay_run(
         if env_run is None or env_run == env_now
         else {k: (env_run.get(k), v) for k, v in env_now.items() if env_run.get(k) != v}
     )
-    stepped = cols["stepped"].astype(bool)
+    say = progress or (lambda _: None)
     buses = np.stack([cols[f"bus_{n}"] for n in BUS_FIELDS], axis=1)[stepped]
     logged = np.stack([cols[f"cmd_{w}"] for w in WHEELS], axis=1)[stepped]
+    t0 = time.perf_counter()
     fn = step.compiled()
     leaves = step.init_leaves()
+    say(f"compiled the step in {time.perf_counter() - t0:.1f} s; replaying {len(buses)} ticks")
     got = np.empty_like(logged)
     iters = np.empty(len(buses), np.int64)
+    t_start = last = time.perf_counter()
     for i, bus in enumerate(buses):
         torques, leaves, rep = fn(leaves, jnp.asarray(bus, step.jnp_dtype))
         got[i] = np.asarray(torques, np.float64)
         iters[i] = int(rep[0])
+        if time.perf_counter() - last >= 1.0:
+            last = time.perf_counter()
+            eta = (last - t_start) / (i + 1) * (len(buses) - i - 1)
+            say(f"replayed {i + 1}/{len(buses)} ticks, ETA {eta:.0f} s")
     same = np.array(
         [np.array_equal(a, b, equal_nan=True) for a, b in zip(got, logged, strict=True)]
     )
@@ -113,11 +138,20 @@ def replay_run(
     result: dict[str, Any] = {
         "run": str(log_dir),
         "scenario": meta["scenario"],
+        "log": {
+            "source": run.source,
+            "complete": run.complete,
+            "state": meta["state"],
+            "ticks": int(len(cols["tick"])),
+            "frames_checked": run.frames_checked,
+            "frames_unchecked": run.frames_unchecked,
+            "notes": list(run.notes),
+        },
         "determinism": {
             "ticks": int(len(buses)),
             "identical": int(same.sum()),
             "differ": int((~same).sum()),
-            "max_abs_diff_nm": float(np.nanmax(diff)) if diff.size else 0.0,
+            "max_abs_diff_nm": float(np.nanmax(diff)) if np.isfinite(diff).any() else 0.0,
         },
         "variants": [],
         # bit for bit needs the run's jax, jaxlib and XLA flags: a difference is
@@ -146,23 +180,32 @@ def replay_run(
 
     add("logged", logged, np.asarray(cols["iterations"])[stepped])
     dtype = step.jnp_dtype
+
+    def timed(name: str, fn: Any, *args: Any) -> Any:
+        """``fn(*args)`` compiled ahead of time, the two times said apart."""
+        t0 = time.perf_counter()
+        compiled = jax.jit(fn).lower(*args).compile()
+        t1 = time.perf_counter()
+        res = jax.block_until_ready(compiled(*args))
+        say(f"{name}: compiled in {t1 - t0:.1f} s, replayed in {time.perf_counter() - t1:.1f} s")
+        return res
+
     if rho_scales:
-        run, _, b = _scan(cfg, dtype, buses)
+        scan_fn, _, b = _scan(cfg, dtype, buses)
         stacked = jax.tree.map(
             lambda *x: jnp.stack(x),
             *[_config(meta, rho_scale=s).loop_params(dtype).controller for s in rho_scales],
         )
-        T, it = jax.jit(jax.vmap(run, in_axes=(0, None)))(stacked, b)
+        T, it = timed("rho scales", jax.vmap(scan_fn, in_axes=(0, None)), stacked, b)
         for s, Ts, its in zip(rho_scales, np.asarray(T), np.asarray(it), strict=True):
             add(f"rho_scale={s:g}", Ts.astype(np.float64), its)
     for form in formulations:
-        c = _config(meta, formulation=form)
-        run, p, b = _scan(c, dtype, buses)
-        T, it = jax.jit(run)(p, b)
+        scan_fn, p, b = _scan(_config(meta, formulation=form), dtype, buses)
+        T, it = timed(f"formulation {form}", scan_fn, p, b)
         add(f"formulation={form}", np.asarray(T, np.float64), np.asarray(it))
     if float32:
-        run, p, b = _scan(cfg, jnp.float32, buses)
-        T, it = jax.jit(run)(p, b)
+        scan_fn, p, b = _scan(cfg, jnp.float32, buses)
+        T, it = timed("float32", scan_fn, p, b)
         add("float32", np.asarray(T, np.float64), np.asarray(it))
     import pyarrow as pa
     import pyarrow.parquet as pq

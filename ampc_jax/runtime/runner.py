@@ -10,24 +10,25 @@ reason: the bridge's watchdog then holds and releases the wheels on its own
 clock (hold, safe, a latched fault), which is the one safe reaction, and a
 torque computed from bad data is never the right one. The tick log says why.
 
-Nothing compiles inside the loop: the step is compiled (or an artefact loaded
-and checked) and called once before the bridge starts.
+The channel opens first (a missing device is refused at once), then the step
+is compiled (or an artefact compiled and checked) and called once; nothing
+compiles inside the loop. Each tick is on disk before the next starts
+(:mod:`~.ticklog`): a killed run keeps its ticks up to the kill.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ..vehicle.actuators import ACTUATORS, bridge_kwargs
@@ -35,8 +36,17 @@ from ..vehicle.params import CONTROL_DT
 from .faults import Fault, active_fault
 from .signals import BUS_FIELDS, bus_from_bridge
 from .step import StepReport, clamp_to_limits, command_problem
+from .ticklog import COLUMNS, TickJournal, new_row
 
-__all__ = ["RunOptions", "TickLog", "environment", "run_controller"]
+__all__ = [
+    "ChannelError",
+    "Prepared",
+    "RunOptions",
+    "TickLog",
+    "environment",
+    "open_bridge",
+    "run_controller",
+]
 
 WHEEL_NAMES = ("FL", "FR", "RL", "RR")
 
@@ -76,7 +86,7 @@ class RunOptions:
 
 @dataclass
 class TickLog:
-    """One row per tick (see :meth:`columns`) and the run's summary."""
+    """One row per tick (:data:`~.ticklog.COLUMNS`) and the run's summary (``run.json``)."""
 
     rows: list[dict[str, Any]] = field(default_factory=list)
     summary: dict[str, Any] = field(default_factory=dict)
@@ -84,9 +94,20 @@ class TickLog:
     def table(self) -> Any:
         import pyarrow as pa
 
-        if not self.rows:
-            return pa.table({"tick": pa.array([], pa.int64())})
-        return pa.table({k: [r[k] for r in self.rows] for k in self.rows[0]})
+        return pa.table({k: [r[k] for r in self.rows] for k in COLUMNS})
+
+
+class ChannelError(RuntimeError):
+    """The bridge could not open its channel (a missing device, a refused connection)."""
+
+
+class Prepared(NamedTuple):
+    """What :func:`run_controller`'s ``prepare`` returns: the compiled step, its cold
+    state and its dtype."""
+
+    step_fn: Any
+    leaves: tuple[Any, ...]
+    dtype: Any
 
 
 def environment() -> dict[str, Any]:
@@ -119,9 +140,40 @@ def _sleep_until(t_ns: int) -> None:
         time.sleep(min(d, 0.05))
 
 
+def open_bridge(channel: str, out: Path, options: RunOptions) -> Any:
+    """The bridge on ``channel``, started (its channel open, its candump log
+    ``out/bridge.log`` begun); ChannelError when the channel cannot be opened."""
+    import can_bridge
+
+    try:
+        bridge = can_bridge.Bridge(
+            channel,
+            **bridge_kwargs(ACTUATORS),
+            log_path=str(out / "bridge.log"),
+            log_overwrite=True,
+            trace_capacity=1,
+            rt_priority=options.rt_priority,
+        )
+        bridge.start()
+    except can_bridge.CanBridgeError as exc:
+        raise ChannelError(f"{channel}: {exc}") from None
+    return bridge
+
+
+def _plant_exit(returncode: int, tick: int, n_ticks: int) -> str:
+    if returncode < 0:
+        try:
+            name = f" ({signal.Signals(-returncode).name})"
+        except ValueError:
+            name = ""
+        how = f"was killed by signal {-returncode}{name}"
+    else:
+        how = f"exited with code {returncode}"
+    return f"the plant process {how} at tick {tick} of {n_ticks}"
+
+
 def run_controller(
-    step_fn: Any,
-    init_leaves: tuple[Any, ...],
+    prepare: Callable[[], Prepared],
     channel: str,
     out: Path,
     options: RunOptions,
@@ -129,53 +181,43 @@ def run_controller(
     meta: dict[str, Any],
     plant_cmd: list[str] | None = None,
     progress: Any = None,
-    dtype: Any = jnp.float64,
 ) -> TickLog:
     """Run the controller next to a bridge on ``channel``; write the logs to ``out``.
 
-    ``step_fn(leaves, bus) -> (torques, leaves, report)`` must be compiled
-    already. ``plant_cmd``: a command started once the bridge is up, with
-    ``{pty}`` replaced by the bridge's pseudo-terminal (``ampc run --with-plant``).
-    ``progress(text)`` gets a status line about once a second.
-    """
-    import can_bridge
+    The channel is opened first (ChannelError: a missing device is refused
+    before anything compiles), then ``plant_cmd`` started (``ampc run
+    --with-plant``: ``{pty}`` is replaced by the bridge's pseudo-terminal; it
+    compiles its plant meanwhile), then ``prepare()`` compiles the step
+    (:class:`Prepared`; ``f(leaves, bus) -> (torques, leaves, report)``, calls
+    never trace). ``progress(text)`` gets a status line about once a second.
 
+    The tick log is on disk as the ticks run (:class:`~.ticklog.TickJournal`);
+    however the run ends short of being killed (its duration, SIGTERM or SIGINT,
+    an error, the plant's exit), ``ticks.parquet`` and ``run.json`` are written,
+    ``run.json["state"]`` saying how it ended and ``["error"]`` why, if it did.
+    """
     out.mkdir(parents=True, exist_ok=True)
     log = TickLog()
-    # Rule: the step gets NumPy arrays of its own dtype (a jnp conversion would
-    # compile a small program at the first tick: 50 ms measured in float32), and
-    # it is called once before actuation and again on the first valid state,
-    # so the first tick runs warm.
-    np_dtype = np.dtype(dtype)
-    cold = tuple(init_leaves)
-    _, _, _ = step_fn(cold, np.zeros((len(BUS_FIELDS),), np_dtype))
-    stop = {"flag": False}
+    bridge = open_bridge(channel, out, options)
+    stop = {"by": None}
     reset = {"flag": False}
-    bridge = can_bridge.Bridge(
-        channel,
-        **bridge_kwargs(ACTUATORS),
-        log_path=str(out / "bridge.log"),
-        log_overwrite=True,
-        trace_capacity=1,
-        rt_priority=options.rt_priority,
-    )
     period_ns = int(round(1e9 * CONTROL_DT))
     lead_ns = int(options.lead_ms * 1e6)
     n_ticks = int(round(options.duration / CONTROL_DT))
     plant = None
-    leaves = cold
-    seq = 0
+    journal: TickJournal | None = None
     compute: list[float] = []
-    misses = 0
-    sent = 0
-    skipped: dict[str, int] = {}
     resets: list[float] = []
     ended_early = True
     error: str | None = None
-    old_term = signal.signal(signal.SIGTERM, lambda *_: stop.update(flag=True))
-    old_usr1 = signal.signal(signal.SIGUSR1, lambda *_: reset.update(flag=True))
+    handlers: dict[int, Any] = {}
+    stats: dict[str, Any] | None = None
+
+    def summary() -> dict[str, Any]:
+        s = stats or bridge.stats()
+        return {"resets_t": resets, **_counts(log.rows, compute), "bridge": _bridge_stats(s)}
+
     try:
-        bridge.start()
         if plant_cmd is not None:
             cmd = [c.replace("{pty}", bridge.pty_path or "") for c in plant_cmd]
             plant = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=sys.stderr)
@@ -183,17 +225,33 @@ def run_controller(
             progress(
                 f"bridge pty: {bridge.pty_path} (ampc plant --channel slcan:{bridge.pty_path})"
             )
+        step_fn, cold, dtype = prepare()
+        # Rule: the step gets NumPy arrays of its own dtype (a jnp conversion would
+        # compile a small program at the first tick: 50 ms measured in float32), and
+        # it is called once before actuation and again on the first valid state,
+        # so the first tick runs warm.
+        np_dtype = np.dtype(dtype)
+        cold = tuple(cold)
+        jax.block_until_ready(step_fn(cold, np.zeros((len(BUS_FIELDS),), np_dtype)))
+        for sig, act in (
+            (signal.SIGTERM, lambda *_: stop.update(by=stop["by"] or "SIGTERM")),
+            (signal.SIGINT, lambda *_: stop.update(by=stop["by"] or "SIGINT")),
+            (signal.SIGUSR1, lambda *_: reset.update(flag=True)),
+        ):
+            handlers[sig] = signal.signal(sig, act)
         d0 = _first_deadline(bridge)
         # the first valid state starts actuation
         t_wait = time.monotonic()
         while not bridge.latest_state()["valid"]:
-            if stop["flag"] or time.monotonic() - t_wait > options.start_timeout_s:
+            if stop["by"]:
+                raise RuntimeError(f"stopped by {stop['by']} before actuation started")
+            if time.monotonic() - t_wait > options.start_timeout_s:
                 why = bridge.latest_state()["reason"]
                 raise TimeoutError(
                     f"no valid vehicle state within {options.start_timeout_s:g} s ({why})"
                 )
             if plant is not None and plant.poll() is not None:
-                raise RuntimeError(f"the plant process exited with code {plant.returncode}")
+                raise RuntimeError(_plant_exit(plant.returncode, 0, n_ticks))
             time.sleep(0.01)
         first, _ = bus_from_bridge(bridge.latest_state())
         if first is not None:  # warm again, on real data (the result is not used)
@@ -203,9 +261,9 @@ def run_controller(
         # starting actuation is the explicit reset of that start-up latch.
         # The bridge applies a reset at its next tick and ignores commands that
         # arrived before it: actuation starts once the reset has taken effect.
-        if bridge.stats()["safety_state"] == "fault":
+        start_reset = bridge.stats()["safety_state"] == "fault"
+        if start_reset:
             bridge.reset_fault()
-            log.summary["start_reset"] = True
             t_reset = time.monotonic()
             while bridge.stats()["safety_state"] == "fault":
                 if time.monotonic() - t_reset > 1.0:
@@ -213,90 +271,121 @@ def run_controller(
                 time.sleep(0.005)
         # tick 0: the first bridge deadline whose wake-up (deadline - lead) is ahead
         k0 = -((d0 - time.monotonic_ns() - lead_ns) // period_ns)
+        journal = TickJournal(out, {**meta, "start_reset": start_reset})
         if options.rt_priority is not None:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(options.rt_priority - 1))
         last_print = time.monotonic()
+        leaves, seq = cold, 0
         for i in range(n_ticks):
-            if stop["flag"]:
+            if stop["by"]:
                 break
+            deadline = d0 + (k0 + i) * period_ns
             if plant is not None and plant.poll() is not None:
-                error = f"the plant process exited with code {plant.returncode}"
-                break
+                # a plant that finished its manoeuvre within the last two ticks
+                # (its clock started one tick after ours) is the normal end
+                end = d0 + (k0 + n_ticks - 2) * period_ns
+                if plant.returncode != 0 or time.monotonic_ns() < end:
+                    error = _plant_exit(plant.returncode, i, n_ticks)
+                    break
             if reset["flag"]:  # SIGUSR1: the operator's explicit reset of a latched fault
                 reset["flag"] = False
                 bridge.reset_fault()
                 # on the clock of the frames: 0 at the first actuated bridge tick
                 resets.append((time.monotonic_ns() - (d0 + k0 * period_ns)) * 1e-9)
-            deadline = d0 + (k0 + i) * period_ns
             wake = deadline - lead_ns
             if time.monotonic_ns() > deadline:  # this tick's bridge deadline already passed
-                misses += 1
-                skipped["late"] = skipped.get("late", 0) + 1
-                log.rows.append(_row(i, wake, None, None, None, None, "late", False))
+                row = new_row(i, wake, "late", "late")
             else:
                 _sleep_until(wake)
                 row = _tick(i, wake, bridge, step_fn, leaves, np_dtype, options, deadline, seq)
                 leaves = row.pop("_leaves")
-                if row.pop("_stepped"):
+                if row["stepped"]:
                     compute.append(row["compute_ms"])
                 if row["sent"]:
-                    seq, sent = row["seq"], sent + 1
-                    misses += row["margin_ms"] < 0
-                else:
-                    kind = row.pop("_skip")
-                    skipped[kind] = skipped.get(kind, 0) + 1
-                row.pop("_skip", None)
-                _frame_of_previous(log.rows, bridge)
-                log.rows.append(row)
-            if progress is not None and time.monotonic() - last_print >= 1.0:
+                    seq = row["seq"]
+                if log.rows:
+                    _frame_of(log.rows[-1], bridge)
+                    journal.framed(log.rows[-1])
+            log.rows.append(row)
+            journal.append(row)
+            if time.monotonic() - last_print >= 1.0:
                 last_print = time.monotonic()
-                p99 = float(np.percentile(compute, 99)) if compute else float("nan")
-                progress(
-                    f"t {i * CONTROL_DT:5.1f}/{options.duration:g} s  ticks {i + 1}  sent {sent}  "
-                    f"misses {misses}  compute p99 {p99:.2f} ms  bridge "
-                    f"{bridge.stats()['tx_mode']}  last {log.rows[-1]['reason'] or 'sent'}"
-                )
+                stats = None
+                journal.status(summary())
+                if progress is not None:
+                    c = summary()
+                    p99 = f"{c['compute_ms_p99']:.2f} ms" if compute else "-"
+                    progress(
+                        f"t {i * CONTROL_DT:5.1f}/{options.duration:g} s  ticks {i + 1}  "
+                        f"sent {c['sent']}  misses {c['misses']}  compute p99 {p99}  bridge "
+                        f"{bridge.stats()['tx_mode']}  last {row['reason'] or 'sent'}"
+                    )
         else:
             ended_early = False
         if log.rows and not ended_early:  # the last command's frame, one tick later
             _sleep_until(d0 + (k0 + n_ticks) * period_ns + 5_000_000)
-            _frame_of_previous(log.rows, bridge)
+            _frame_of(log.rows[-1], bridge)
+            journal.framed(log.rows[-1])
+    except BaseException as exc:
+        if journal is not None and error is None:  # recorded in run.json, then raised
+            error = f"{type(exc).__name__}: {exc}"
+        raise
     finally:
         if options.rt_priority is not None:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         stats = bridge.stats() if bridge.running else None
         bridge.stop()
         stats = stats or bridge.stats()
-        signal.signal(signal.SIGTERM, old_term)
-        signal.signal(signal.SIGUSR1, old_usr1)
+        for sig, old in handlers.items():
+            signal.signal(sig, old)
         if plant is not None:
-            _end_plant(plant, wait_s=5.0 if ended_early else 30.0)
-    if error is not None:
-        log.summary["error"] = error
+            ended = _end_plant(plant, wait_s=5.0 if ended_early else 30.0)
+            if error is None and not ended_early and (ended != "exited" or plant.returncode):
+                error = (
+                    f"the plant process exited with code {plant.returncode} after the run"
+                    if ended == "exited"
+                    else f"the plant process did not end within 30 s of the run's end ({ended})"
+                )
+        if journal is not None:
+            state = "error" if error else ("stopped" if stop["by"] else "finished")
+            final = {
+                **summary(),
+                "state": state,
+                "plant_returncode": None if plant is None else plant.returncode,
+                "pid": os.getpid(),
+                "environment": environment(),
+            }
+            if error:
+                final["error"] = error
+            if stop["by"]:
+                final["stopped_by"] = stop["by"]
+            log.summary = journal.finish(log.rows, final)
+    return log
+
+
+def _counts(rows: list[dict[str, Any]], compute: list[float]) -> dict[str, Any]:
+    """The run's counts and compute statistics from its rows (run.json's fields)."""
     c = np.asarray(compute)
     q = lambda p: float(np.percentile(c, p)) if c.size else None  # noqa: E731
-    log.summary = {
-        **meta,
-        "start_reset": log.summary.get("start_reset", False),
-        "resets_t": resets,
-        "ticks": len(log.rows),
-        "sent": sent,
-        "misses": misses,
+    skipped: dict[str, int] = {}
+    for r in rows:
+        if r["skip"]:
+            skipped[r["skip"]] = skipped.get(r["skip"], 0) + 1
+    sent = [r for r in rows if r["sent"]]
+    return {
+        "ticks": len(rows),
+        "sent": len(sent),
+        "misses": skipped.get("late", 0) + sum(r["margin_ms"] < 0 for r in sent),
         "skipped": skipped,
         "compute_ms_median": q(50),
         "compute_ms_p99": q(99),
         "compute_ms_max": float(c.max()) if c.size else None,
-        "margin_ms_min": min((r["margin_ms"] for r in log.rows if r["sent"]), default=None),
-        "bridge": {k: stats[k] for k in _BRIDGE_STATS},
-        "plant_returncode": None if plant is None else plant.returncode,
-        "pid": os.getpid(),
-        "environment": environment(),
+        "margin_ms_min": min((r["margin_ms"] for r in sent), default=None),
     }
-    import pyarrow.parquet as pq
 
-    pq.write_table(log.table(), out / "ticks.parquet")
-    (out / "run.json").write_text(json.dumps(log.summary, indent=1, default=str))
-    return log
+
+def _bridge_stats(s: dict[str, Any]) -> dict[str, Any]:
+    return {k: s[k] for k in _BRIDGE_STATS}
 
 
 def _tick(
@@ -311,7 +400,7 @@ def _tick(
     seq: int,
 ) -> dict[str, Any]:
     """One tick from its wake-up: state, step, checks, hand-over. The row, with
-    ``_leaves`` (the next warm state), ``_stepped`` and ``_skip`` for the loop."""
+    ``_leaves`` (the next warm state) for the loop."""
     import can_bridge
 
     woke = time.monotonic_ns()
@@ -322,9 +411,8 @@ def _tick(
     if bus is not None and (age is None or age > options.max_state_age_ms):
         bus, why = None, f"state stale ({age} ms)"
     if bus is None:
-        row = _row(i, woke, st, None, None, None, why, False)
-        row.update(_leaves=leaves, _stepped=False, _skip="state")
-        row["wake_late_ms"] = (woke - wake) * 1e-6
+        row = _state_row(new_row(i, woke, why or "no state", "state"), st)
+        row.update(_leaves=leaves, wake_late_ms=(woke - wake) * 1e-6)
         return row
     t0 = time.perf_counter()
     torques, new_leaves, rep = step_fn(leaves, bus.astype(np_dtype))
@@ -351,8 +439,10 @@ def _tick(
         set_ms = (t_done - t_set) * 1e-6
         margin = (deadline - t_done) * 1e-6
     ok = problem is None
-    row = _row(i, woke, st, bus, raw, report, problem, ok)
+    row = _state_row(new_row(i, woke, problem or "", "" if ok else "step"), st)
     row.update(
+        stepped=True,
+        sent=ok,
         compute_ms=dt_ms,
         margin_ms=margin if ok else float("nan"),
         state_call_ms=(got_state - woke) * 1e-6,
@@ -361,34 +451,53 @@ def _tick(
         seq=seq + 1 if ok else -1,
         fault=fault or "",
         clamped=clamped or "",
+        iterations=int(report.iterations),
+        status=int(report.status),
+        fallback=bool(report.fallback),
+        primal_residual=float(report.primal_residual),
+        dual_residual=float(report.dual_residual),
+        _leaves=new_leaves,
     )
-    row.update(_leaves=new_leaves, _stepped=True, _skip="step")
+    for j, name in enumerate(BUS_FIELDS):
+        row[f"bus_{name}"] = float(bus[j])
+    for j, w in enumerate(WHEEL_NAMES):
+        row[f"cmd_{w}"] = float(raw[j])
     return row
 
 
-def _frame_of_previous(rows: list[dict[str, Any]], bridge: Any) -> None:
-    """What the bridge framed at the tick the previous row's command was for:
-    read after that tick (the rows' ``framed_*`` and ``bridge_mode``)."""
-    if not rows:
-        return
+def _state_row(row: dict[str, Any], st: dict[str, Any]) -> dict[str, Any]:
+    row["state_valid"] = bool(st["valid"])
+    if st.get("age_ms") is not None:
+        row["state_age_ms"] = float(st["age_ms"])
+    return row
+
+
+def _frame_of(row: dict[str, Any], bridge: Any) -> None:
+    """What the bridge framed at the tick the row's command was for, read after
+    that tick: ``framed_*``, ``bridge_mode``, and ``bridge_tx_frames`` (which of
+    its logged frames that was), from one snapshot of its statistics."""
     s = bridge.stats()
-    rows[-1]["bridge_mode"] = s["tx_mode"]
+    row["bridge_mode"] = s["tx_mode"]
+    row["bridge_tx_frames"] = int(s["tx_frames"])
     for j, w in enumerate(WHEEL_NAMES):
-        rows[-1][f"framed_{w}"] = float(s["applied_torques_nm"][j])
+        row[f"framed_{w}"] = float(s["applied_torques_nm"][j])
 
 
-def _end_plant(plant: subprocess.Popen, wait_s: float) -> None:
-    """Wait for the plant to finish its run; terminate it, then kill it, if it does not."""
+def _end_plant(plant: subprocess.Popen, wait_s: float) -> str:
+    """Wait for the plant to finish its run; terminate it, then kill it, if it does
+    not. Returns "exited", "terminated" or "killed"."""
     try:
         plant.wait(timeout=wait_s)
-        return
+        return "exited"
     except subprocess.TimeoutExpired:
         plant.terminate()
     try:
         plant.wait(timeout=5.0)
+        return "terminated"
     except subprocess.TimeoutExpired:
         plant.kill()
         plant.wait(timeout=5.0)
+        return "killed"
 
 
 _BRIDGE_STATS = (
@@ -408,48 +517,6 @@ _BRIDGE_STATS = (
     "rx_counter_errors",
     "safety_state",
     "transport_losses",
+    "log_dropped",
+    "log_errors",
 )
-
-
-def _row(
-    i: int,
-    woke_ns: int,
-    st: dict[str, Any] | None,
-    bus: np.ndarray | None,
-    torques: np.ndarray | None,
-    report: StepReport | None,
-    why: str | None,
-    sent: bool,
-) -> dict[str, Any]:
-    nan = float("nan")
-    row: dict[str, Any] = {
-        "tick": i,
-        "t": i * CONTROL_DT,
-        "t_wake_ns": int(woke_ns),
-        "state_valid": bool(st["valid"]) if st else False,
-        "state_age_ms": float(st["age_ms"]) if st and st.get("age_ms") is not None else nan,
-        "stepped": torques is not None,
-        "sent": sent,
-        "reason": why or "",
-        "compute_ms": nan,
-        "margin_ms": nan,
-        "state_call_ms": nan,
-        "set_call_ms": nan,
-        "wake_late_ms": nan,
-        "seq": -1,
-        "fault": "",
-        "iterations": int(report.iterations) if report is not None else -1,
-        "status": int(report.status) if report is not None else -1,
-        "fallback": bool(report.fallback) if report is not None else False,
-        "primal_residual": float(report.primal_residual) if report is not None else nan,
-        "dual_residual": float(report.dual_residual) if report is not None else nan,
-    }
-    for j, name in enumerate(BUS_FIELDS):
-        row[f"bus_{name}"] = float(bus[j]) if bus is not None else nan
-    for j, w in enumerate(WHEEL_NAMES):
-        row[f"cmd_{w}"] = float(torques[j]) if torques is not None else nan
-    row["clamped"] = ""
-    row["bridge_mode"] = ""
-    for w in WHEEL_NAMES:
-        row[f"framed_{w}"] = nan
-    return row

@@ -10,6 +10,7 @@ import contextlib
 import io
 import json
 import re
+import struct
 import zipfile
 
 import pytest
@@ -169,6 +170,38 @@ def test_run_refuses_an_artefact_of_another_configuration(
     line = _error(capsys)
     assert line.startswith("ampc: error: --artefact: ")
     assert "another controller configuration" in line, line
+
+
+def test_run_refuses_a_damaged_artefact_zip(capsys, tmp_path, artefact, nothing_starts) -> None:
+    """Bytes flipped inside the zip's deflated step: one clean line, not zlib.error."""
+    path, _ = artefact
+    with zipfile.ZipFile(path) as z:
+        info = z.getinfo("step.stablehlo")
+    data = bytearray(path.read_bytes())
+    n, m = struct.unpack("<HH", data[info.header_offset + 26 : info.header_offset + 30])
+    data[info.header_offset + 30 + n + m + 5] ^= 0xFF  # an invalid deflate stream
+    bad = tmp_path / "damaged.zip"
+    bad.write_bytes(bytes(data))
+    rc = main(_run(tmp_path, "--channel", "slcan-pty:", "--artefact", str(bad), "--quiet"))
+    assert rc == 2
+    line = _error(capsys)
+    assert line.startswith("ampc: error: --artefact: ") and str(bad) in line, line
+
+
+def test_run_on_a_missing_device_fails_before_compiling(capsys, tmp_path, monkeypatch) -> None:
+    """The channel is opened first: a missing device is refused at once, naming
+    --channel, not after the controller's compilation."""
+    import ampc_jax.runtime.step as step
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("compiled before the channel was opened")
+
+    monkeypatch.setattr(step.RuntimeStep, "compiled", refuse)
+    device = tmp_path / "no" / "ttyACM0"
+    rc = main(_run(tmp_path, "--channel", f"slcan:{device}", "--quiet"))
+    assert rc == 2
+    line = _error(capsys)
+    assert line.startswith("ampc: error: --channel: ") and str(device) in line, line
 
 
 def test_run_refuses_what_is_not_an_artefact(capsys, tmp_path, nothing_starts) -> None:
