@@ -86,7 +86,7 @@ from .problem import (  # noqa: E402
     make_data,
 )
 from .reference import solve_reference  # noqa: E402
-from .results import STATUS, SolveResult, status_name  # noqa: E402
+from .results import STATUS, SolveResult, SolveStats, Status, status_name, usable  # noqa: E402
 
 __all__ = [
     "FORMULATIONS",
@@ -101,6 +101,8 @@ __all__ = [
     "ProblemData",
     "ProblemError",
     "SolveResult",
+    "SolveStats",
+    "Status",
     "SolverParams",
     "Topology",
     "__version__",
@@ -111,4 +113,5 @@ __all__ = [
     "solve_reference",
     "solver_params",
     "status_name",
+    "usable",
 ]

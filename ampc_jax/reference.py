@@ -17,7 +17,7 @@ import scipy.sparse as sp
 from .problem.condensed import CondensedQP, condensed_qp, cost_offset
 from .problem.data import ProblemData
 from .problem.topology import Topology
-from .results import USABLE_STATUS, SolveResult
+from .results import SolveResult, SolveStats, Status, usable
 
 __all__ = [
     "OSQPReference",
@@ -89,7 +89,8 @@ def solve_reference(
 
     ``eps`` sets the solver's tolerances. The returned ``u`` is (N_p, n_u);
     residual fields hold the solver's primal and dual residuals when it reports
-    them (as 1-element arrays). ``state`` holds the solve time in seconds.
+    them (as 1-element arrays). ``stats.solve_time`` holds the solve time in
+    seconds (Clarabel: setup and solve; OSQP: the solve after its setup).
 
     A Clarabel solve it calls solved is reported as ``solved_inaccurate`` (5)
     when its duality gap exceeds 1e-5 of the full cost (:func:`reference_gap`):
@@ -105,9 +106,12 @@ def solve_reference(
         name = str(sol.status)
         status = _reference_status(name)
         u = np.asarray(sol.x, dtype=float)
-        if status == 0 and reference_gap(qp, u, sol.z, cost_offset(data)) > _REFERENCE_GAP:
-            status = 5  # solved by Clarabel's measure, not in the full cost's
-        if status not in USABLE_STATUS:  # an infeasibility certificate is no input
+        if (
+            status == Status.SOLVED
+            and reference_gap(qp, u, sol.z, cost_offset(data)) > _REFERENCE_GAP
+        ):
+            status = Status.SOLVED_INACCURATE  # solved by Clarabel's measure, not the full cost's
+        if not usable(status):  # an infeasibility certificate is no input
             u = np.full_like(u, np.nan)
         iters = int(sol.iterations)
         pres = float(getattr(sol, "r_prim", np.nan))
@@ -117,7 +121,7 @@ def solve_reference(
         t0 = time.perf_counter()  # setup excluded, as for a warm update + solve
         res = ref.solve()
         elapsed = time.perf_counter() - t0
-        return res._replace(state=elapsed)
+        return res._replace(stats=SolveStats(solve_time=elapsed))
     else:
         raise ValueError(f"solver: expected 'clarabel' or 'osqp', got {solver!r}")
     return SolveResult(
@@ -125,12 +129,12 @@ def solve_reference(
         if u.size == n
         else np.full((topology.horizon, topology.n_u), np.nan),
         iterations=iters,
-        converged=status == 0,
-        status=status,
+        converged=status == Status.SOLVED,
+        status=int(status),
         primal_residual=np.array([pres]),
         dual_residual=np.array([dres]),
         rho=np.array([np.nan]),
-        state=elapsed,
+        stats=SolveStats(solve_time=elapsed),
     )
 
 
@@ -145,27 +149,27 @@ def reference_inputs(topology: Topology, data: ProblemData, eps: float = 1e-9) -
     out = np.full((n, topology.horizon, topology.n_u), np.nan)
     for i in range(n):
         res = solve_reference(topology, jax.tree.map(lambda x, i=i: x[i], host), eps=eps)
-        if int(res.status) in USABLE_STATUS:
+        if usable(int(res.status)):
             out[i] = np.asarray(res.u, float)
     return out
 
 
-def _reference_status(name: str) -> int:
-    """Clarabel's or OSQP's status text as a :data:`~ampc_jax.results.STATUS` code.
+def _reference_status(name: str) -> Status:
+    """Clarabel's or OSQP's status text as a :class:`~ampc_jax.results.Status`.
 
     Clarabel: ``Solved``, ``AlmostSolved``, ``PrimalInfeasible``, ...; OSQP:
     ``solved``, ``solved inaccurate``, ``primal infeasible``, ... An inaccurate
-    solution is kept apart from a solved one (code 5), so that a test asking
-    for the reference optimum does not accept it.
+    solution is kept apart from a solved one (``SOLVED_INACCURATE``), so that a
+    test asking for the reference optimum does not accept it.
     """
     low = name.lower().replace(" ", "").replace("_", "")
     if "infeasible" in low:
-        return 3
+        return Status.INFEASIBLE
     if low.startswith("almostsolved") or (low.startswith("solved") and "inaccurate" in low):
-        return 5
-    if low == "solved" or low.startswith("solved"):
-        return 0
-    return 4
+        return Status.SOLVED_INACCURATE
+    if low.startswith("solved"):
+        return Status.SOLVED
+    return Status.SOLVER_ERROR
 
 
 class OSQPReference:
@@ -236,14 +240,14 @@ class OSQPReference:
         T = self.topology
         x = (
             np.asarray(res.x, dtype=float)
-            if res.x is not None and status in USABLE_STATUS
+            if res.x is not None and usable(status)
             else np.full(T.horizon * T.n_u, np.nan)
         )
         return SolveResult(
             u=x.reshape(T.horizon, T.n_u),
             iterations=int(info.iter),
-            converged=status == 0,
-            status=status,
+            converged=status == Status.SOLVED,
+            status=int(status),
             primal_residual=np.array([float(info.prim_res)]),
             dual_residual=np.array([float(info.dual_res)]),
             rho=np.array([float(info.rho_estimate)]),

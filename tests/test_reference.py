@@ -232,3 +232,26 @@ def test_clarabel_solved_with_a_large_gap_in_the_full_cost_is_inaccurate():
             tight = le.params(tol_primal=1e-16, tol_dual=1e-16)
             best = definition_cost(p, np.asarray(jax.jit(le.solve)(p.data(), tight).u))
             assert definition_cost(p, np.asarray(ref.u)) > best * (1 + 1e-6)
+
+
+def test_statuses_are_named_with_messages_and_one_usable_predicate():
+    """Every status code has a name and a message; one predicate says which
+    carry inputs, on ints and on (traced) arrays alike; the former names stay."""
+    from ampc_jax.closed_loop.controller import OK_STATUS
+    from ampc_jax.results import STATUS, USABLE_STATUS, Status, status_message, usable
+
+    assert STATUS == {s.value: s.label for s in Status} and STATUS[1] == "max_iter_reached"
+    assert all(len(s.message) > 20 for s in Status)
+    assert status_message(9) == "unknown status code 9"
+    want = [s in (Status.SOLVED, Status.MAX_ITER_REACHED, Status.SOLVED_INACCURATE) for s in Status]
+    assert [usable(int(s)) for s in Status] == want
+    codes = jnp.arange(len(Status), dtype=jnp.int32)
+    assert np.asarray(jax.jit(usable)(codes)).tolist() == want
+    assert OK_STATUS == USABLE_STATUS == (0, 1, 5)
+
+
+def test_reference_time_is_a_stat_not_a_state():
+    p = random_problem(0, 2)
+    for solver in ("clarabel", "osqp"):
+        ref = solve_reference(p.topology, p.data(), solver)
+        assert ref.state is None and ref.stats.solve_time > 0, solver

@@ -45,7 +45,7 @@ import jax
 import jax.numpy as jnp
 
 from ..problem.data import ProblemData
-from ..results import SolveResult
+from ..results import SolveResult, Status
 from .linalg import spd_inverse
 
 __all__ = [
@@ -220,9 +220,11 @@ def with_certificate(result: SolveResult, data: ProblemData) -> SolveResult:
     back solved. A point that satisfies every row proves the set non-empty;
     the result's inputs themselves are not changed."""
     fixed = repaired_inputs(data, result.u)
-    check = (result.status != 0) | ((violation(data, result.u) > 0) & (violation(data, fixed) > 0))
+    check = (result.status != Status.SOLVED) | (
+        (violation(data, result.u) > 0) & (violation(data, fixed) > 0)
+    )
     cert = _batched_search(check, jax.lax.stop_gradient(data))
-    status = jnp.where(cert.infeasible, 3, result.status).astype(jnp.int32)
+    status = jnp.where(cert.infeasible, Status.INFEASIBLE, result.status).astype(jnp.int32)
     return result._replace(
         status=status, converged=result.converged & ~cert.infeasible, certificate=cert
     )

@@ -185,7 +185,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
     from ..formulations import FORMULATIONS
     from ..problem import Problem, ProblemError, merged_data, merged_topology
     from ..reference import solve_reference
-    from ..results import USABLE_STATUS, status_name
+    from ..results import Status, status_message, status_name, usable
 
     path = _resolve_problem(args.problem)
     if not path.exists():
@@ -260,7 +260,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
             if args.warm_start:
                 return fail("--warm-start: applies to --formulation local_explicit only")
             res = solve_reference(T, data, args.solver or "clarabel", eps=min(tol, 1e-6))
-            solve_s = float(res.state)
+            solve_s = float(res.stats.solve_time)
             rho_out = {}
     except ProblemError as exc:
         return fail(f"{path}: {exc}")
@@ -303,10 +303,11 @@ def cmd_solve(args: argparse.Namespace) -> int:
             "Z": np.asarray(st.Z).tolist(),
             "gamma": [np.asarray(x).tolist() for x in solver.multipliers(st)],
         }
-    usable = int(res.status) in USABLE_STATUS and bool(np.all(np.isfinite(u)))
-    violation = _violation(data, u) if usable else float("nan")
+    ok = usable(int(res.status)) and bool(np.all(np.isfinite(u)))
+    violation = _violation(data, u) if ok else float("nan")
     out["constraint_violation"] = violation
-    if usable and int(res.status) == 1 and violation > _violation_limit(args.tol):
+    at_cap = int(res.status) == Status.MAX_ITER_REACHED
+    if ok and at_cap and violation > _violation_limit(args.tol):
         # the last iterate of an unconverged ADMM run that breaks a general row is no
         # input to apply; persistently so is what an infeasible problem looks like
         print(
@@ -316,21 +317,22 @@ def cmd_solve(args: argparse.Namespace) -> int:
             f"(--formulation integrated checks), or needs more iterations",
             file=sys.stderr,
         )
-        usable = False
-    elif usable and int(res.status) == 1:  # max_iter_reached
+        ok = False
+    elif ok and at_cap:
         print(
             f"ampc: not converged: stopped at --max-iter {max_iter} with primal "
             f"residual {out['primal_residual']:.3g}, dual {out['dual_residual']:.3g} "
             f"(tolerance {args.tol:g}); u is the last iterate, projected on the bounds",
             file=sys.stderr,
         )
-    if not usable:
+    if not ok:
         # never print a number that is not a solution (an infeasibility
         # certificate, a NaN marker read as a value) as an input
         out["u0"] = {k: None for k in per_agent}
         out["u"] = {k: None for k in per_agent}
         print(
-            f"ampc: no solution ({status_name(res.status)}); u and u0 are null",
+            f"ampc: no solution ({status_name(res.status)}); u and u0 are null: "
+            f"{status_message(res.status)}",
             file=sys.stderr,
         )
     out = _finite_or_none(out)  # strict JSON: any NaN or inf left becomes null
@@ -338,7 +340,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
         print(json.dumps(out, allow_nan=False))
     else:
         _print_table(out, T)
-    return 0 if usable else 1
+    return 0 if ok else 1
 
 
 def _violation_limit(tol: float) -> float:

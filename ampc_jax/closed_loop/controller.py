@@ -8,8 +8,9 @@ their agents; solve (Local Explicit, eq.integMPC_F3 to eq.F3_multiplier, or
 the integrated MPC), warm started from the previous step; guard the result;
 map the agent inputs to wheel torques.
 
-Fallback guard: a solve whose status is not ``solved`` or
-``max_iter_reached``, or whose U^(0) is not finite, is not applied; the
+Fallback guard: a solve whose status is not usable
+(:func:`~ampc_jax.results.usable`: solved or ``max_iter_reached`` for the ADMM
+formulations), or whose U^(0) is not finite, is not applied; the
 previous command clipped to the current bounds is held instead (zero where
 that is not finite) and the warm start is reset to cold. So the actuators
 never receive NaN or out-of-bound torques.
@@ -30,14 +31,16 @@ from ..admm.state import ADMMState
 from ..formulations import FORMULATIONS, Formulation, formulation
 from ..problem.data import ProblemData, make_data
 from ..problem.topology import Topology
+from ..results import USABLE_STATUS, usable
 from ..vehicle.examples import VehicleExample
 from ..vehicle.params import Measurement, VehicleParams
 from .config import ControllerParams
 
 __all__ = ["OK_STATUS", "Controller", "ControllerState", "DriverInputs", "StepInfo"]
 
-OK_STATUS = (0, 1)
-"""Status codes whose inputs are applied (solved, max_iter_reached); any other falls back."""
+OK_STATUS = USABLE_STATUS
+"""Former name of :data:`~ampc_jax.results.USABLE_STATUS` (status codes whose
+inputs are applied); ask :func:`~ampc_jax.results.usable` instead."""
 
 
 class DriverInputs(NamedTuple):
@@ -63,7 +66,7 @@ class StepInfo(NamedTuple):
     u_ctrl: Any  # (n_inputs,) the solver's U^(0) before the guard (NaN for agents left out)
     driver_torque: Any  # () the driver torque the vehicle got (Nm)
     iterations: Any  # () int32
-    status: Any  # () int32 (results.STATUS)
+    status: Any  # () int32 (results.Status)
     fallback: Any  # () bool: the guard replaced the solver's output
     primal_residual: Any  # () the largest objective's ||r_j||^2
     dual_residual: Any  # () the largest objective's ||s_j||^2
@@ -235,7 +238,7 @@ class Controller:
         else:
             res = solver.solve_fixed(data, self.fixed_iterations, params.solver, warm_in)
         u0 = res.u0
-        ok = jnp.isin(res.status, jnp.asarray(OK_STATUS)) & jnp.all(jnp.isfinite(u0))
+        ok = usable(res.status) & jnp.all(jnp.isfinite(u0))
         lb0 = jnp.where(jnp.isfinite(data.lb[0]), data.lb[0], 0.0)
         ub0 = jnp.where(jnp.isfinite(data.ub[0]), data.ub[0], 0.0)
         hold = jnp.where(jnp.isfinite(state.u_prev), state.u_prev, 0.0)

@@ -86,7 +86,7 @@ class SimLog(NamedTuple):
     e_sub: Any  # (K, n_inputs) |u_ctrl - u_shadow| (eq.suboptimality), nan for disabled agents
     torques: Any  # (K, 4) wheel torques sent to the plant (Nm)
     iterations: Any  # (K,) controller iterations
-    status: Any  # (K,) controller status code (results.STATUS)
+    status: Any  # (K,) controller status code (results.Status)
     shadow_iterations: Any  # (K,)
     shadow_status: Any  # (K,)
     fallback: Any  # (K,) bool, the guard replaced the controller's output

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..results import Status
 from .config import SimConfig
 
 if TYPE_CHECKING:
@@ -209,7 +210,7 @@ class SimResult:
                     "(a failed or non-finite solve)"
                 )
             if c.shadow:
-                bad = int(np.sum(np.asarray(lg.shadow_status) != 0))
+                bad = int(np.sum(np.asarray(lg.shadow_status) != Status.SOLVED))
                 if bad:
                     out.append(
                         f"the shadow integrated MPC did not converge on {bad} of {n} steps: "

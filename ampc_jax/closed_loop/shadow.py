@@ -20,7 +20,7 @@ from ..admm.state import ADMMState
 from ..formulations import IntegratedADMM
 from ..problem.data import ProblemData
 from ..problem.topology import Topology
-from .controller import OK_STATUS
+from ..results import usable
 
 __all__ = ["IntegratedShadow", "ShadowInfo"]
 
@@ -56,7 +56,7 @@ class IntegratedShadow:
         """Solve ``data`` to the shadow's tolerance; the next warm state and what it found."""
         solver = self.solver
         sh = solver.solve(data, params, state)
-        ok = jnp.isin(sh.status, jnp.asarray(OK_STATUS)) & jnp.all(jnp.isfinite(sh.u0))
+        ok = usable(sh.status) & jnp.all(jnp.isfinite(sh.u0))
         cold = solver.cold_state(jnp.result_type(data.A))
         nxt = jax.tree.map(
             lambda a, b: jnp.where(ok, a, b), solver.shift(sh.state, self.warm_shift), cold

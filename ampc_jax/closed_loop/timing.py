@@ -15,8 +15,8 @@ import jax
 import numpy as np
 
 from ..formulations import IntegratedADMM
+from ..results import usable
 from .config import SimConfig
-from .controller import OK_STATUS
 
 if TYPE_CHECKING:
     from .loop import SimLog
@@ -103,7 +103,7 @@ def replay_timing(
             ts.append(time.perf_counter() - t0)
         t_i[k] = np.median(ts)
         it_i[k] = int(r.iterations)
-        ok = int(r.status) in OK_STATUS and bool(np.all(np.isfinite(np.asarray(r.u))))
+        ok = bool(usable(int(r.status))) and bool(np.all(np.isfinite(np.asarray(r.u))))
         w_i = ia.shift(r.state, config.warm_shift) if (config.warm_start and ok) else cold_i
         if progress is not None:
             progress(1)

@@ -86,7 +86,7 @@ from ..admm.state import shift_horizon, warm_start
 from ..problem.data import ProblemData
 from ..problem.errors import ProblemError
 from ..problem.topology import Topology
-from ..results import SolveResult
+from ..results import SolveResult, Status
 
 __all__ = [
     "CONSENSUS_DUAL_RESIDUALS",
@@ -384,7 +384,11 @@ class ConsensusADMM(ADMMSolver):
         u = jnp.clip(state.Z, setup.lb, setup.ub)
         conv = self.converged(setup, state)
         finite = jnp.all(jnp.isfinite(u)) & jnp.all(jnp.isfinite(state.primal))
-        status = jnp.where(~finite, 2, jnp.where(conv, 0, 1)).astype(jnp.int32)
+        status = jnp.where(
+            ~finite,
+            Status.NUMERICAL_ERROR,
+            jnp.where(conv, Status.SOLVED, Status.MAX_ITER_REACHED),
+        ).astype(jnp.int32)
         u = jnp.where(finite, u, jnp.zeros_like(u))
         return SolveResult(
             u=u,

@@ -71,7 +71,7 @@ from ..admm.rho import eq_opt_ro
 from ..admm.state import ADMMState, cold_state, shift_state, warm_start
 from ..problem.data import ProblemData
 from ..problem.topology import Topology
-from ..results import SolveResult
+from ..results import SolveResult, Status
 
 __all__ = ["DUAL_RESIDUALS", "RHO_METHODS", "LocalExplicit", "LocalSetup"]
 
@@ -441,7 +441,11 @@ class LocalExplicit(ADMMSolver):
         u = jnp.clip(total / jnp.asarray(count, dt), setup.lb, setup.ub)
         conv = self.converged(setup, state)
         finite = jnp.all(jnp.isfinite(u)) & jnp.all(jnp.isfinite(state.primal))
-        status = jnp.where(~finite, 2, jnp.where(conv, 0, 1)).astype(jnp.int32)
+        status = jnp.where(
+            ~finite,
+            Status.NUMERICAL_ERROR,
+            jnp.where(conv, Status.SOLVED, Status.MAX_ITER_REACHED),
+        ).astype(jnp.int32)
         return SolveResult(
             u=jnp.where(finite, u, jnp.zeros_like(u)),  # never a NaN out: status 2 says why
             iterations=state.iteration,
