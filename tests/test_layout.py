@@ -1,5 +1,6 @@
-"""The package layout: one concept per module, no import circle, the CLI imported by
-no library module, no private name imported across modules."""
+"""The package layout: one concept per module, no import circle (module-level or
+inside functions), the CLI imported by no library module, no private name imported
+across modules."""
 
 import ast
 import pathlib
@@ -54,11 +55,13 @@ def _resolve(target: str) -> str:
     return target
 
 
-def test_no_import_circle_among_module_level_imports():
-    graph = {m: set() for m in MODULES}
+def _graph(module_level_only: bool) -> dict[str, set[str]]:
+    """module -> the package's modules it imports (at module level only, or also
+    inside functions and ``if TYPE_CHECKING:`` blocks)."""
+    graph: dict[str, set[str]] = {m: set() for m in MODULES}
     for m, p in MODULES.items():
         for target, names, top in _imports(p):
-            if not top:
+            if module_level_only and not top:
                 continue
             t = _resolve(target)
             # "from pkg import name" where name is a submodule imports that submodule
@@ -67,6 +70,10 @@ def test_no_import_circle_among_module_level_imports():
                     graph[m].add(f"{t}.{n}")
             if t and t != m:
                 graph[m].add(t)
+    return graph
+
+
+def _assert_no_circle(graph: dict[str, set[str]]) -> None:
     # a package's __init__ re-exporting its own submodules is not a circle
     state: dict[str, int] = {}
     stack: list[str] = []
@@ -89,6 +96,29 @@ def test_no_import_circle_among_module_level_imports():
     for m in sorted(graph):
         if m not in state:
             visit(m)
+
+
+def test_no_import_circle_among_module_level_imports():
+    _assert_no_circle(_graph(module_level_only=True))
+
+
+def test_no_import_circle_hidden_in_function_local_imports():
+    """An import inside a function (or for type checking only) is a dependency
+    too: with them the graph has no circle either (closed_loop/config.py once
+    built the controller and simulator that import it)."""
+    _assert_no_circle(_graph(module_level_only=False))
+
+
+def test_the_circle_check_sees_function_local_imports():
+    """The walk finds an import inside a function, so the check above can fail."""
+    cfg = MODULES["ampc_jax.closed_loop.config"]
+    assert ("ampc_jax.closed_loop.controller", ["Controller"], False) not in _imports(cfg)
+    local = [(t, top) for t, _, top in _imports(MODULES["ampc_jax.tuning.solver"])]
+    assert ("ampc_jax.sweep.engine", False) in local
+    graph = _graph(module_level_only=False)
+    graph["ampc_jax.closed_loop.config"].add("ampc_jax.closed_loop.loop")
+    with pytest.raises(AssertionError, match="import circle: .*closed_loop"):
+        _assert_no_circle(graph)
 
 
 def test_library_never_imports_the_cli():

@@ -1,12 +1,14 @@
 """The closed loop: the controller step, the shadow observer, the simulated run,
 its metrics and its timing replay (section "Experimental Studies").
 
-* :mod:`~.config` -- :class:`SimConfig` and its split into a static
-  :class:`Simulator` and the :class:`LoopParams` a compiled loop takes;
+* :mod:`~.config` -- :class:`SimConfig`, configuration as pure data, and the
+  :class:`LoopParams` a compiled loop takes;
 * :mod:`~.controller` -- :class:`Controller` (``init`` / ``step``), the piece a
-  runtime or a replay calls unchanged;
-* :mod:`~.shadow` -- the integrated MPC in shadow (e_sub);
-* :mod:`~.loop` -- the scan over control periods, :func:`simulate`;
+  runtime or a replay calls unchanged, and its builder :func:`controller_for`;
+* :mod:`~.shadow` -- the integrated MPC in shadow (e_sub), :func:`shadow_for`;
+* :mod:`~.log` -- :class:`SimLog`, what a run records;
+* :mod:`~.loop` -- the scan over control periods, :func:`simulate`, and the
+  static :class:`Simulator`'s builder :func:`simulator_for`;
 * :mod:`~.metrics` -- :class:`SimResult` (e_sub, iterations, tracking, warnings);
 * :mod:`~.timing` -- eq.t_ratio by replay.
 """
@@ -25,10 +27,11 @@ from .config import (
     config_for,
     with_settings,
 )
-from .controller import Controller, ControllerState, DriverInputs, StepInfo
-from .loop import SimLog, Simulator, run_closed_loop, simulate, simulate_batch
+from .controller import Controller, ControllerState, DriverInputs, StepInfo, controller_for
+from .log import SimLog
+from .loop import Simulator, run_closed_loop, simulate, simulate_batch, simulator_for
 from .metrics import SimResult
-from .shadow import IntegratedShadow
+from .shadow import IntegratedShadow, shadow_for
 from .timing import replay_timing
 
 __all__ = [
@@ -51,9 +54,12 @@ __all__ = [
     "check_duration",
     "check_mu",
     "config_for",
+    "controller_for",
     "replay_timing",
     "run_closed_loop",
+    "shadow_for",
     "simulate",
     "simulate_batch",
+    "simulator_for",
     "with_settings",
 ]

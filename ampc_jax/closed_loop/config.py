@@ -1,14 +1,16 @@
-"""What a closed-loop run is: :class:`SimConfig`, validated, and its split into
-the static structure and the parameters a compiled loop takes.
+"""What a closed-loop run is: :class:`SimConfig`, validated configuration as pure data.
 
 A :class:`SimConfig` holds every setting of a run (example, formulation,
 objectives, solver options, settings of the example, vehicle and driver). It
-splits into
+imports nothing of what is built from it; the builders sit beside what they
+build:
 
-* the static part, :meth:`SimConfig.simulator` -- a hashable
+* the static part -- :func:`~ampc_jax.closed_loop.controller.controller_for`,
+  :func:`~ampc_jax.closed_loop.shadow.shadow_for` and
+  :func:`~ampc_jax.closed_loop.loop.simulator_for`: a hashable
   :class:`~ampc_jax.closed_loop.loop.Simulator` of the controller and
   shadow's static options (iteration caps, Anderson memory, warm start,
-  horizon): what a compiled closed loop is specialised on;
+  horizon), what a compiled closed loop is specialised on;
 * :meth:`SimConfig.loop_params` -- :class:`LoopParams`, a pytree of arrays:
   the controller's and the shadow's :class:`~ampc_jax.admm.SolverParams`
   (rho scales, relaxation, tolerances) and the example's weights and bounds.
@@ -18,15 +20,16 @@ splits into
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ..admm.acceleration import anderson_memory
-from ..admm.params import SolverParams
-from ..vehicle.actuators import ACTUATORS
+from ..admm.params import SolverParams, solver_params
 from ..vehicle.examples import VehicleExample, example
 from ..vehicle.manoeuvres import DriverParams, ScenarioSpec, scenario
 from ..vehicle.models import ExampleSettings
@@ -43,10 +46,12 @@ __all__ = [
     "LoopParams",
     "SimConfig",
     "baseline_config",
+    "built",
     "check_duration",
     "check_mu",
     "check_steps",
     "config_for",
+    "register_builder",
     "with_settings",
 ]
 
@@ -93,6 +98,29 @@ PAPER_SOLVER_OPTIONS: dict[str, Any] = {
 """eq.opt_ro's rho* unscaled and no over-relaxation or acceleration: the
 paper's iteration (``config_for(..., **PAPER_SOLVER_OPTIONS)``); the warm start
 (which the paper does not use) is the standard shifted one."""
+
+
+_BUILDERS: dict[str, Callable[[SimConfig], Any]] = {}
+
+
+def register_builder(name: str, build: Callable[[SimConfig], Any]) -> None:
+    """Record ``build`` (a config -> object function beside the class it builds)
+    under ``name``, so that :meth:`SimConfig.controller` and
+    :meth:`SimConfig.simulator`, the former builder methods, keep working
+    without this module importing what it configures. ``controller.py``
+    registers ``"controller"``, ``loop.py`` ``"simulator"``; importing
+    :mod:`ampc_jax.closed_loop` imports both."""
+    _BUILDERS[name] = build
+
+
+def built(name: str, config: SimConfig) -> Any:
+    """What the builder registered as ``name`` makes of ``config``."""
+    if name not in _BUILDERS:
+        raise RuntimeError(
+            f"{name}: no builder registered; import ampc_jax.closed_loop (it registers "
+            f"controller_for and simulator_for)"
+        )
+    return _BUILDERS[name](config)
 
 
 def check_duration(duration: Any, name: str = "duration") -> float:
@@ -372,54 +400,29 @@ class SimConfig:
             out["rho_scale"] = list(self.rho_scale)
         return out
 
-    # -- the split: static structure and parameters ---------------------------------
+    # -- former builders, kept for callers outside the closed loop ------------------
     def controller(self) -> Any:
-        """The static controller (:class:`~ampc_jax.closed_loop.controller.Controller`),
-        or None for ``formulation="none"``."""
-        from .controller import Controller
-
-        if self.formulation == "none":
-            return None
-        return Controller(
-            example=self.vehicle_example,
-            enabled=self.enabled,
-            horizon=self.horizon,
-            formulation=self.formulation,
-            max_iter=self.max_iter,
-            anderson=self.anderson,
-            warm_start=self.warm_start,
-            warm_shift=self.warm_shift,
-            vehicle=self.vehicle,
-            fixed_iterations=self.fixed_iterations,
-        )
+        """Alias of :func:`~ampc_jax.closed_loop.controller.controller_for` (``config``):
+        the static controller, or None for ``formulation="none"``."""
+        return built("controller", self)
 
     def simulator(self) -> Any:
-        """The static closed loop (:class:`~ampc_jax.closed_loop.loop.Simulator`)."""
-        from .loop import Simulator
-        from .shadow import IntegratedShadow
+        """Alias of :func:`~ampc_jax.closed_loop.loop.simulator_for` (``config``):
+        the static closed loop."""
+        return built("simulator", self)
 
-        ctrl = self.controller()
-        shadow = None
-        if ctrl is not None and self.shadow:
-            shadow = IntegratedShadow(ctrl.topology, self.shadow_max_iter, self.warm_shift)
-        limits = ACTUATORS if self.actuators == "bridge" else None
-        return Simulator(self.vehicle_example, ctrl, shadow, self.vehicle, self.driver, limits)
-
+    # -- the numbers a compiled loop takes ---------------------------------------------
     def loop_params(self, dtype: Any = None) -> LoopParams:
         """The run's numbers as a :class:`LoopParams` pytree of ``dtype`` arrays.
 
         The shadow's tolerances are floored at 1e-4 Nm^2 in float32 (its
         resolution at these torques)."""
-        import jax.numpy as jnp
-
         dt = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
         if self.formulation == "integrated":
             rho = self.integrated_rho_scale
         else:  # no enabled objective: formulation "none", no solver runs
             rho = self.enabled_rho_scale if self.enabled else 1.0
         n_rho = 1 if self.formulation == "integrated" else max(1, len(self.enabled))
-        from ..admm.params import solver_params
-
         controller = solver_params(
             n_rho,
             rho=rho,

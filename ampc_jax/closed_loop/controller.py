@@ -34,9 +34,16 @@ from ..problem.topology import Topology
 from ..results import USABLE_STATUS, usable
 from ..vehicle.examples import VehicleExample
 from ..vehicle.params import Measurement, VehicleParams
-from .config import ControllerParams
+from .config import ControllerParams, SimConfig, register_builder
 
-__all__ = ["OK_STATUS", "Controller", "ControllerState", "DriverInputs", "StepInfo"]
+__all__ = [
+    "OK_STATUS",
+    "Controller",
+    "ControllerState",
+    "DriverInputs",
+    "StepInfo",
+    "controller_for",
+]
 
 OK_STATUS = USABLE_STATUS
 """Former name of :data:`~ampc_jax.results.USABLE_STATUS` (status codes whose
@@ -265,3 +272,25 @@ class Controller:
             warm=warm_in,
         )
         return torques, ControllerState(warm_next, u_app), info
+
+
+def controller_for(config: SimConfig) -> Controller | None:
+    """The static controller of ``config`` (its example, enabled objectives, horizon,
+    formulation and solver options), or None for ``formulation="none"``."""
+    if config.formulation == "none":
+        return None
+    return Controller(
+        example=config.vehicle_example,
+        enabled=config.enabled,
+        horizon=config.horizon,
+        formulation=config.formulation,
+        max_iter=config.max_iter,
+        anderson=config.anderson,
+        warm_start=config.warm_start,
+        warm_shift=config.warm_shift,
+        vehicle=config.vehicle,
+        fixed_iterations=config.fixed_iterations,
+    )
+
+
+register_builder("controller", controller_for)

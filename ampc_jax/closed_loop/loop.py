@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..vehicle.actuators import ActuatorLimits, bridge_actuators
+from ..vehicle.actuators import ACTUATORS, ActuatorLimits, bridge_actuators
 from ..vehicle.examples import VehicleExample
 from ..vehicle.manoeuvres import (
     DriverParams,
@@ -50,48 +50,29 @@ from ..vehicle.manoeuvres import scenario as scenario_spec
 from ..vehicle.models import yaw_rate_reference
 from ..vehicle.params import CONTROL_DT, VehicleParams
 from ..vehicle.plant import measure, plant_step
-from .config import LoopParams, SimConfig, check_duration, check_mu, check_steps, config_for
-from .controller import Controller, DriverInputs
+from .config import (
+    LoopParams,
+    SimConfig,
+    check_duration,
+    check_mu,
+    check_steps,
+    config_for,
+    register_builder,
+)
+from .controller import Controller, DriverInputs, controller_for
+from .log import SimLog
 from .metrics import SimResult
-from .shadow import IntegratedShadow
+from .shadow import IntegratedShadow, shadow_for
+from .timing import replay_timing
 
-__all__ = ["SimLog", "Simulator", "run_closed_loop", "simulate", "simulate_batch"]
-
-
-class SimLog(NamedTuple):
-    """Per-step arrays of one closed-loop run (leading axis: control step k).
-
-    Inputs are the example's agent inputs (``VehicleExample.input_names``, e.g.
-    DTR, RTV, FDB_L, FDB_R) in Nm; disabled agents hold zero. Wheels [FL, FR, RL, RR].
-    """
-
-    t: Any  # (K,) s, time at the start of the step
-    X: Any  # (K,) m, position at the start of the step
-    Y: Any  # (K,)
-    psi: Any  # (K,) rad
-    v_x: Any  # (K,) m/s
-    v_y: Any  # (K,)
-    yaw_rate: Any  # (K,) rad/s
-    omega: Any  # (K, 4) rad/s
-    slip: Any  # (K, 4) longitudinal slip ratio
-    steer: Any  # (K,) rad, driver's road-wheel angle
-    driver_torque: Any  # (K,) Nm, T_DTR (cruise: 0, or the PI for "none")
-    v_ref: Any  # (K,) m/s
-    yaw_ref: Any  # (K,) rad/s, eq.CC_objective's friction-limited reference
-    omega_ref: Any  # (K,) rad/s, rear wheel-speed reference (stability; else nan)
-    path_y: Any  # (K,) m, the path's lateral position at X
-    u: Any  # (K, n_inputs) applied agent inputs (Nm)
-    u_ctrl: Any  # (K, n_inputs) the controller's U^(0) before the fallback guard
-    u_shadow: Any  # (K, n_inputs) the shadow integrated MPC's U^(0) (nan: no shadow)
-    e_sub: Any  # (K, n_inputs) |u_ctrl - u_shadow| (eq.suboptimality), nan for disabled agents
-    torques: Any  # (K, 4) wheel torques sent to the plant (Nm)
-    iterations: Any  # (K,) controller iterations
-    status: Any  # (K,) controller status code (results.Status)
-    shadow_iterations: Any  # (K,)
-    shadow_status: Any  # (K,)
-    fallback: Any  # (K,) bool, the guard replaced the controller's output
-    data: Any  # ProblemData per step (for replay_timing); None for "none"
-    warm: Any  # ADMMState the controller started from, per step; None for "none"
+__all__ = [
+    "SimLog",
+    "Simulator",
+    "run_closed_loop",
+    "simulate",
+    "simulate_batch",
+    "simulator_for",
+]
 
 
 class _Carry(NamedTuple):
@@ -110,7 +91,7 @@ class Simulator:
     no e_sub; ``actuators`` None: the plant gets the commanded torques, else
     the CAN bridge's limiter with these limits stands between
     (:func:`~ampc_jax.vehicle.actuators.bridge_actuators`; ``torques`` logs
-    what the plant got). Build it with :meth:`SimConfig.simulator`.
+    what the plant got). Build it with :func:`simulator_for`.
     """
 
     example: VehicleExample
@@ -227,6 +208,19 @@ class Simulator:
         return log
 
 
+def simulator_for(config: SimConfig) -> Simulator:
+    """The static closed loop of ``config``: its controller
+    (:func:`~.controller.controller_for`), shadow (:func:`~.shadow.shadow_for`),
+    vehicle, driver and actuator model."""
+    ctrl = controller_for(config)
+    shadow = shadow_for(config, ctrl.topology) if ctrl is not None else None
+    limits = ACTUATORS if config.actuators == "bridge" else None
+    return Simulator(config.vehicle_example, ctrl, shadow, config.vehicle, config.driver, limits)
+
+
+register_builder("simulator", simulator_for)
+
+
 def _cast(tree: Any, dtype: Any) -> Any:
     """Cast floating leaves to ``dtype``.
 
@@ -313,7 +307,7 @@ def simulate_batch(
     scenarios = _cast(scenarios, dtype)
     if mu is not None:
         scenarios = scenarios._replace(mu=jnp.asarray(check_mu(mu), dtype))
-    sim = config.simulator()
+    sim = simulator_for(config)
     if params is None:
         p = config.loop_params(dtype)
         return jax.jit(jax.vmap(lambda sc: run_closed_loop(sim, sc, p, n_steps)))(scenarios)
@@ -365,7 +359,7 @@ def simulate(
             f"{fault_arr.shape}"
         )
     params = config.loop_params(dtype)
-    compiled, t_compile = _compiled_run(config.simulator(), sc, params, n, fault_arr)
+    compiled, t_compile = _compiled_run(simulator_for(config), sc, params, n, fault_arr)
     t0 = time.perf_counter()
     log = jax.block_until_ready(compiled(sc, params, fault_arr))
     first = time.perf_counter() - t0
@@ -375,8 +369,6 @@ def simulate(
         log_np, config, spec.name, spec.focus, n * CONTROL_DT, wall, t_compile, first_run_time=first
     )
     if timing and config.formulation != "none":
-        from .timing import replay_timing
-
         res.timing = replay_timing(config, log, repeats=repeats)
     return res
 

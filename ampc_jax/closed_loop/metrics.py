@@ -7,15 +7,13 @@ MPC), r_time eq.t_ratio (from :func:`~ampc_jax.closed_loop.timing.replay_timing`
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from ..results import Status
 from .config import SimConfig
-
-if TYPE_CHECKING:
-    from .loop import SimLog
+from .log import SimLog
 
 __all__ = ["V_X_BACKWARDS", "SimResult"]
 

@@ -21,8 +21,9 @@ from ..formulations import IntegratedADMM
 from ..problem.data import ProblemData
 from ..problem.topology import Topology
 from ..results import usable
+from .config import SimConfig
 
-__all__ = ["IntegratedShadow", "ShadowInfo"]
+__all__ = ["IntegratedShadow", "ShadowInfo", "shadow_for"]
 
 
 class ShadowInfo(NamedTuple):
@@ -62,3 +63,11 @@ class IntegratedShadow:
             lambda a, b: jnp.where(ok, a, b), solver.shift(sh.state, self.warm_shift), cold
         )
         return nxt, ShadowInfo(sh.u0, sh.iterations, sh.status)
+
+
+def shadow_for(config: SimConfig, topology: Topology) -> IntegratedShadow | None:
+    """The shadow of ``config`` on its controller's ``topology`` (cap
+    ``shadow_max_iter``, the controller's warm shift), or None without one."""
+    if not config.shadow:
+        return None
+    return IntegratedShadow(topology, config.shadow_max_iter, config.warm_shift)

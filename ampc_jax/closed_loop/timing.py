@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import jax
 import numpy as np
@@ -17,9 +17,8 @@ import numpy as np
 from ..formulations import IntegratedADMM
 from ..results import usable
 from .config import SimConfig
-
-if TYPE_CHECKING:
-    from .loop import SimLog
+from .controller import controller_for
+from .log import SimLog
 
 __all__ = ["replay_timing"]
 
@@ -59,7 +58,7 @@ def replay_timing(
             "replay_timing compares a decomposed formulation with IntegratedADMM; "
             f"got formulation {config.formulation!r}"
         )
-    ctrl = config.controller()
+    ctrl = controller_for(config)
     T = ctrl.topology
     data, warm = log.data, log.warm
     dtype = data.A.dtype

@@ -256,3 +256,21 @@ def test_baseline_is_the_papers_comparison():
         ValueError, match=r"^compare: this run has no MPC \(no MPC \(driver PI\)\): no baseline"
     ):
         baseline_config(none)
+
+
+# --------------------------------------------------------------------------- builders
+def test_builders_sit_beside_what_they_build():
+    """controller_for, shadow_for and simulator_for build from the pure-data
+    config; SimConfig's former builder methods give the same objects."""
+    from ampc_jax.closed_loop import controller_for, shadow_for, simulator_for
+
+    c = config_for("cruise_lane_change")
+    ctrl = controller_for(c)
+    assert ctrl == c.controller() and ctrl.horizon == c.horizon
+    sim = simulator_for(c)
+    assert sim == c.simulator() and sim.controller == ctrl
+    assert sim.shadow == shadow_for(c, ctrl.topology) and sim.shadow.max_iter == c.shadow_max_iter
+    quiet = config_for("cruise_lane_change", shadow=False)
+    assert shadow_for(quiet, ctrl.topology) is None and simulator_for(quiet).shadow is None
+    none = SimConfig("cruise", formulation="none")
+    assert controller_for(none) is None and simulator_for(none).controller is None
