@@ -86,7 +86,11 @@ def _faults(texts: list[str] | None, kinds: tuple[str, ...]) -> tuple[Any, ...]:
 
 
 def _golden_bus(spec: Any) -> np.ndarray:
-    """The bus vector of the scenario's first step (the golden input of an artefact)."""
+    """The bus vector of the scenario's first step (the golden input of an artefact):
+    the plant's initial state and the driver's first step as one compiled program,
+    not op by op (a compilation per operation), since it is on ``run --artefact``'s
+    way to opening the channel."""
+    import jax
     import jax.numpy as jnp
 
     from ..runtime.signals import bus_vector
@@ -99,8 +103,15 @@ def _golden_bus(spec: Any) -> np.ndarray:
     from ..vehicle.params import VehicleParams
 
     sc = spec.scenario
-    ps = initial_plant_state(sc, VehicleParams(), jnp.float64)
-    _, steer, T, v_ref = driver_step(initial_driver_state(jnp.float64), ps, 0.0, sc, DriverParams())
+
+    def first() -> Any:
+        ps = initial_plant_state(sc, VehicleParams(), jnp.float64)
+        _, steer, T, v_ref = driver_step(
+            initial_driver_state(jnp.float64), ps, 0.0, sc, DriverParams()
+        )
+        return ps, steer, T, v_ref
+
+    ps, steer, T, v_ref = jax.jit(first)()
     return bus_vector(ps, steer, T, v_ref, float(sc.mu))
 
 

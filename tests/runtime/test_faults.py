@@ -108,7 +108,6 @@ def test_sensor_and_controller_faults_hold_then_safe_then_recover(tmp_path: Path
         flag = "--plant-fault" if kind in ("silent", "frozen", "corrupt") else "--fault"
         args += [flag, f"{kind}@{a}:{b}"]
     f = _run(tmp_path, rt_args, *args)
-    assert f["run"]["misses"] == 0
     reasons = f["run"]["skipped"]
     assert reasons.get("state", 0) > 0 and reasons.get("step", 0) > 0, reasons
     # the plant corrupts what it sends; every torque frame it receives is sound

@@ -19,7 +19,8 @@ import pytest
 
 from ampc_jax.cli import main
 
-pytestmark = pytest.mark.timeout(240)
+# the first test to ask for run_dir waits for conftest's 10 s run (two compilations)
+pytestmark = pytest.mark.timeout(300)
 
 WHEELS = ("FL", "FR", "RL", "RR")
 

@@ -91,7 +91,7 @@ def test_ten_seconds_over_the_bus_every_frame_checked(run_result) -> None:
     ), last
 
 
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(300)
 def test_what_the_bridge_framed_is_the_simulated_limiter_of_each_command(run_dir: Path) -> None:
     """Each tick's command, as the bridge framed it at its tick: the limiter the
     simulation uses (``bridge_actuators``), from the previous frame."""
@@ -114,7 +114,7 @@ def test_what_the_bridge_framed_is_the_simulated_limiter_of_each_command(run_dir
     assert checked >= 20
 
 
-@pytest.mark.timeout(240)
+@pytest.mark.timeout(300)
 def test_the_vehicle_tracks_as_in_the_simulation(run_dir: Path) -> None:
     import jax.numpy as jnp
 
@@ -134,7 +134,7 @@ def test_the_vehicle_tracks_as_in_the_simulation(run_dir: Path) -> None:
     assert yaw_rms < YAW_RMS_TOL, yaw_rms
 
 
-@pytest.mark.timeout(240)
+@pytest.mark.timeout(300)
 def test_replay_reproduces_every_command_bit_for_bit(run_dir: Path, tmp_path: Path) -> None:
     p = ampc("replay", str(run_dir), "--rho-scale", "0.5,2", "--out", str(tmp_path), timeout=200)
     res = json.loads((tmp_path / "replay.json").read_text())
@@ -150,7 +150,7 @@ def test_replay_reproduces_every_command_bit_for_bit(run_dir: Path, tmp_path: Pa
         assert 0.0 < v["max_abs_diff_nm"] < 500.0, v
 
 
-@pytest.mark.timeout(240)
+@pytest.mark.timeout(300)
 def test_an_exported_artefact_gives_the_in_process_commands(run_dir: Path, tmp_path: Path) -> None:
     import jax.numpy as jnp
 
