@@ -36,8 +36,10 @@ __all__ = [
 
 
 def fail(msg: str, code: int = 2) -> int:
-    """Print ``ampc: error: msg`` on stderr; return ``code`` (2: bad input)."""
-    print(f"ampc: error: {msg}", file=sys.stderr)
+    """Print ``ampc: error: msg`` on stderr, on one line (a message of several
+    lines, e.g. a file reader's, is joined); return ``code`` (2: bad input)."""
+    one = " ".join(line.strip() for line in str(msg).splitlines() if line.strip())
+    print(f"ampc: error: {one}", file=sys.stderr)
     return code
 
 
@@ -91,7 +93,8 @@ def at_least_one(value: int) -> None:
 
 def flag_error(exc: Exception, flags: Mapping[str, str]) -> str:
     """The message of a library error that starts with a field name (``rho_scale: ...``),
-    with the field replaced by its flag (``--rho-scale: ...``)."""
+    with the field replaced by its flag (``--rho-scale: ...``); any other message
+    as it is (``ampc: error: message``, never a flag made up from its first word)."""
     text = str(exc)
     field, sep, rest = text.partition(": ")
     if sep and field in flags:

@@ -7,11 +7,40 @@ import os
 import sys
 from typing import Any
 
-from .args import arg_type, at_least_one, fail, output_dir, over_relaxation, positive_finite
+from .args import (
+    arg_type,
+    at_least_one,
+    fail,
+    flag_error,
+    output_dir,
+    over_relaxation,
+    positive_finite,
+)
 
 __all__ = ["add_sweep_command", "cmd_sweep"]
 
 RHO_DEFAULT = "0.1:10:13"
+
+_FLAGS = {
+    name: "--" + name.replace("_", "-")
+    for name in (
+        "family",
+        "cases",
+        "rho",
+        "formulation",
+        "seed",
+        "tol",
+        "relaxation",
+        "anderson",
+        "max_iter",
+        "horizon",
+        "chunk",
+        "duration",
+        "groups",
+        "out",
+    )
+}
+"""SweepSpec's fields (and ``out``) -> their flags, for the library's messages."""
 
 
 def _force_cpu_devices(n: int) -> None:
@@ -94,9 +123,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             spec, args.out, progress=False if args.quiet else None, figures=not args.no_figures
         )
     except ValueError as exc:
-        msg = str(exc)
-        flag = msg.split(":", 1)[0].replace("_", "-")
-        return fail(f"--{flag}:{msg.split(':', 1)[1]}" if ":" in msg else msg)
+        return fail(flag_error(exc, _FLAGS))
+    except OSError as exc:  # the output directory went away or filled up
+        return fail(f"--out: {args.out}: {exc.strerror or exc}")
     if jax.process_index() != 0:
         return 0
     import pyarrow.parquet as pq

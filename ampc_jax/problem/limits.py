@@ -31,6 +31,7 @@ __all__ = [
     "check_memory",
     "condensed_bytes",
     "format_bytes",
+    "format_count",
     "log10_norm",
     "max_power_log10",
 ]
@@ -81,7 +82,10 @@ def available_memory() -> int | None:
 
 
 def format_bytes(n: float) -> str:
-    """``n`` bytes in decimal units: ``"2.3 GB"``, ``"64 EB"``, ``"6.4e+22 B"`` beyond."""
+    """``n`` bytes in decimal units: ``"2.3 GB"``, ``"64 EB"``, ``"6.4e+22 B"`` beyond
+    (``"about 10^400 B"`` for an integer beyond float64)."""
+    if isinstance(n, int) and n >= 10**300:
+        return f"about 10^{math.floor(math.log10(n))} B"
     n = float(n)
     for unit, scale in (("EB", 1e18), ("PB", 1e15), ("TB", 1e12), ("GB", 1e9), ("MB", 1e6)):
         if n >= scale:
@@ -133,9 +137,9 @@ def check_memory(*, horizon: int, n_x: int, n_u: int, n_y: Sequence[int]) -> Non
         f"{max(n_y)} outputs"
     )
     if _FLOAT_BYTES * state > need / 2:
-        field, what = "A", f"n_x = {n_x} (with N_p = {_count(horizon)})"
+        field, what = "A", f"n_x = {n_x} (with N_p = {format_count(horizon, grouped=False)})"
     else:
-        field, what = "horizon", f"N_p = {_count(horizon)}"
+        field, what = "horizon", f"N_p = {format_count(horizon, grouped=False)}"
     raise ProblemError(
         f"{field}: {what} needs about {format_bytes(need)} for the condensed matrices a "
         f"solve forms ({sizes}; they grow as N_p^3 and (N_p n_u)^2), more than the "
@@ -143,9 +147,12 @@ def check_memory(*, horizon: int, n_x: int, n_u: int, n_y: Sequence[int]) -> Non
     )
 
 
-def _count(n: int) -> str:
-    """An integer as text, also one beyond Python's 4,300-digit str limit."""
-    return str(n) if n < 10**100 else f"about 10^{math.floor(math.log10(n))}"
+def format_count(n: int, grouped: bool = True) -> str:
+    """An integer as text (with thousands separators when ``grouped``); ``about
+    10^k`` beyond 10^18 (also past Python's 4,300-digit str limit)."""
+    if n >= 10**18:
+        return f"about 10^{math.floor(math.log10(n))}"
+    return f"{n:,}" if grouped else str(n)
 
 
 def log10_norm(x: np.ndarray) -> float:

@@ -1,19 +1,29 @@
 """A whole sweep: cases of a family against a grid of rho scales, streamed in chunks to Parquet.
 
 :func:`run_sweep` draws the cases chunk by chunk (each chunk ``chunk`` cases
-times the grid's P points), solves every (case, point) pair in one compiled
-program (:func:`~ampc_jax.sweep.engine.sweep_solve`: compaction, the pair
-axis sharded over every device of every process), compares each pair's
+times the grid's P points), solves the (case, point) pairs of a chunk in
+calls of the compiled program (:func:`~ampc_jax.sweep.engine.sweep_solve`:
+compaction, the pair axis sharded over every device of every process) of
+about :data:`SUB_PAIRS` pairs per device each, compares each pair's
 first-step inputs with the integrated optimum (Clarabel on the condensed QP,
 once per case) and writes one Parquet file per chunk under ``OUT/chunks/``.
-A rerun with the same settings skips the chunks already written (resume); a
-rerun with other settings into the same directory is refused. At the end the
-chunks are joined into ``OUT/sweep.parquet`` (one row per case and point,
-the run's metadata in the schema and in ``OUT/sweep.json``) and the figures
-are drawn (:mod:`ampc_jax.sweep.figures`).
+At the end the chunks are joined into ``OUT/sweep.parquet`` (one row per case
+and point, the run's metadata in the schema and in ``OUT/sweep.json``) and the
+figures are drawn (:mod:`ampc_jax.sweep.figures`).
 
-Memory is bounded by one chunk: 10,000 cases x 30 points x 2 objectives is
-40 chunks of 256 cases (7,680 pairs each) and a 300,000-row table.
+Resume and refusal: every chunk carries the hash of the spec that wrote it
+and the cases it holds (its Parquet metadata, key ``ampc_sweep``). A rerun
+with the same spec skips the chunks already written; any file under
+``OUT/chunks/`` of another spec, another chunk layout, unreadable or with
+rows missing, and an ``OUT/sweep.json`` of another spec or unreadable, are
+refused before anything runs (ValueError ``out: ...``), so a table never
+mixes two sweeps (:func:`check_out`).
+
+Memory: a call of the program holds about SUB_PAIRS pairs per device, a chunk
+its rows, the join every row; all three are estimated from the family's case
+size and refused up front against the memory the machine has
+(:func:`check_memory`; ``--rho``, ``--chunk`` or ``--cases`` named). 10,000
+cases x 30 points is 40 chunks of 256 cases and a 300,000-row table.
 
 With several processes (``jax.distributed.initialize()`` before the call),
 every process runs the same chunks (the program is collective), writes the
@@ -37,34 +47,53 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..batch import pad_cases
+from ..problem.limits import check_memory as check_problem_memory
 from ..reference import reference_inputs
 from ..results import STATUS
+from . import memory, store
 from .engine import Work, pair_data, pair_params, sweep_solve
 from .families import StepCases, family
+from .memory import check_points
+from .store import chunk_name
 
-__all__ = ["SweepSpec", "SweepSummary", "rho_grid", "run_sweep"]
+__all__ = ["SweepSpec", "SweepSummary", "check_memory", "check_out", "rho_grid", "run_sweep"]
 
 FORMAT = "ampc-sweep/1"
 
+SUB_PAIRS = 1024
+"""(case, point) pairs per device in one call of the compiled program. Rule: a
+chunk is solved in calls of about this many pairs per device and the progress
+bar moves after each; reason: a chunk of 256 cases x 13 points was one call,
+so the bar moved once per chunk (several seconds to minutes), and the memory
+of a call is bounded whatever ``--chunk`` is."""
+
 
 def rho_grid(text: str) -> tuple[float, ...]:
-    """A rho-scale grid from ``LO:HI:N`` (N points, geometric) or ``a,b,c``; ValueError otherwise."""
+    """A rho-scale grid from ``LO:HI:N`` (N points, geometric) or ``a,b,c``; ValueError otherwise.
+
+    Every call of the program holds all N points of at least one case, so N
+    points that cannot fit in the available memory are refused before the grid
+    is formed (:func:`~ampc_jax.sweep.memory.check_points`)."""
     t = str(text).strip()
+    n_i = None
     try:
         if ":" in t:
             lo, hi, n = t.split(":")
             lo_f, hi_f, n_i = float(lo), float(hi), int(n)
             if n_i < 1 or not (np.isfinite(lo_f) and np.isfinite(hi_f)) or lo_f <= 0 or hi_f <= 0:
                 raise ValueError
-            vals = np.geomspace(lo_f, hi_f, n_i)
         else:
             vals = np.array([float(x) for x in t.split(",") if x.strip()])
     except ValueError:
         raise ValueError(
-            f"expected LO:HI:N (N geometric points) or a comma list of positive numbers, got {text!r}"
+            f"expected LO:HI:N (N geometric points) or a comma list of positive numbers, "
+            f"got {t[:80]!r}"
         ) from None
+    check_points(n_i if n_i is not None else vals.size)
+    if n_i is not None:
+        vals = np.geomspace(lo_f, hi_f, n_i)
     if vals.size == 0 or not np.all(np.isfinite(vals) & (vals > 0)):
-        raise ValueError(f"expected positive finite rho scales, got {text!r}")
+        raise ValueError(f"expected positive finite rho scales, got {t[:80]!r}")
     return tuple(float(v) for v in vals)
 
 
@@ -225,36 +254,71 @@ def _local_rows(arrays: Any) -> tuple[np.ndarray, Any]:
     return idx, jax.tree.unflatten(tree, [local(x) for x in leaves])
 
 
-def _chunk_path(out: Path, k: int) -> Path:
-    np_, pi = jax.process_count(), jax.process_index()
-    suffix = "" if np_ == 1 else f".p{pi}of{np_}"
-    return out / "chunks" / f"chunk_{k:05d}{suffix}.parquet"
+def _chunk_names(k: int) -> list[str]:
+    n = jax.process_count()
+    return [chunk_name(k, p, n) for p in range(n)]
 
 
 def _chunk_done(out: Path, k: int) -> bool:
-    np_ = jax.process_count()
-    if np_ == 1:
-        return (out / "chunks" / f"chunk_{k:05d}.parquet").exists()
-    return all((out / "chunks" / f"chunk_{k:05d}.p{p}of{np_}.parquet").exists() for p in range(np_))
-
-
-def _check_manifest(out: Path, spec: SweepSpec) -> None:
-    m = out / "sweep.json"
-    want = _spec_dict(spec)
-    if m.exists():
-        have = json.loads(m.read_text()).get("spec")
-        if have != want:
-            diff = sorted(k for k in set(want) | set(have or {}) if (have or {}).get(k) != want[k])
-            raise ValueError(
-                f"out: {out} holds a different sweep ({', '.join(diff)} differ); "
-                "choose another --out or remove it"
-            )
+    return all((out / "chunks" / name).exists() for name in _chunk_names(k))
 
 
 def _spec_dict(spec: SweepSpec) -> dict[str, Any]:
     d = asdict(spec)
     d["rho"] = list(spec.rho)
     return d
+
+
+def _layout(spec: SweepSpec, n_dev: int) -> tuple[int, int]:
+    """(cases per chunk, number of chunks): ``spec.chunk`` rounded up to a multiple
+    of the device count, and never beyond the cases (no padding to a huge chunk)."""
+    cases = -(-spec.cases // n_dev) * n_dev
+    chunk = min(-(-spec.chunk // n_dev) * n_dev, cases)
+    return chunk, -(-spec.cases // chunk)
+
+
+def _sub_cases(chunk: int, points: int, n_dev: int) -> int:
+    """Cases per call of the program: about :data:`SUB_PAIRS` pairs per device, at
+    least one case per device, splitting the chunk into equal calls."""
+    per_call = max(1, SUB_PAIRS // points) * n_dev
+    calls = -(-chunk // per_call)
+    sub = -(-chunk // calls)
+    return -(-sub // n_dev) * n_dev
+
+
+def check_out(out: str | Path, spec: SweepSpec, n_dev: int) -> None:
+    """:func:`~ampc_jax.sweep.store.check_out` for ``spec`` on ``n_dev`` devices:
+    ValueError ``out: ...`` when ``out`` holds anything of another sweep."""
+    chunk, _ = _layout(spec, n_dev)
+    store.check_out(
+        out,
+        _spec_dict(spec),
+        cases=spec.cases,
+        points=len(spec.rho),
+        chunk=chunk,
+        processes=jax.process_count(),
+    )
+
+
+def check_memory(
+    spec: SweepSpec, kind: str, case_bytes: int, devs: list, *, available: int | None = None
+) -> dict[str, int]:
+    """:func:`~ampc_jax.sweep.memory.check_memory` for ``spec`` on ``devs`` (a case
+    of ``case_bytes``; ``kind`` ``"step"`` or ``"loop"``): the estimates, or
+    ValueError ``rho:``, ``chunk:`` or ``cases:``."""
+    n_dev = len(devs)
+    chunk, _ = _layout(spec, n_dev)
+    P = len(spec.rho)
+    return memory.check_memory(
+        cases=spec.cases,
+        points=P,
+        chunk=chunk,
+        call_cases=_sub_cases(chunk, P, n_dev),
+        kind=kind,
+        case_bytes=case_bytes,
+        devs=devs,
+        available=available,
+    )
 
 
 def run_sweep(
@@ -267,9 +331,12 @@ def run_sweep(
 ) -> SweepSummary:
     """Run (or resume) the sweep ``spec`` into the directory ``out``; see the module docstring.
 
-    ``progress``: a bar over the cases (cases/s, ETA) on process 0: None (default)
-    on a terminal only, True always, False never. ``figures``: draw them (default
-    True). ``devices``: the devices to shard over (default all, every process's).
+    ``progress``: a bar over the cases (cases/s, ETA; the compaction waste for
+    single steps) on process 0, moved after every call of the program: None
+    (default) on a terminal only, True always, False never. ``figures``: draw
+    them (default True). ``devices``: the devices to shard over (default all,
+    every process's). Before anything runs, ``out`` is checked
+    (:func:`check_out`) and the memory estimated (:func:`check_memory`).
     """
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -278,18 +345,25 @@ def run_sweep(
     t_start = time.perf_counter()
     out = Path(out)
     lead = jax.process_index() == 0
-    _check_manifest(out, spec)
     fam = family(spec.family)
     if fam.kind == "loop" and jax.process_count() > 1:
         raise ValueError("family: closed-loop sweeps run in one process (its devices sharded)")
-    (out / "chunks").mkdir(parents=True, exist_ok=True)
     devs = list(jax.devices() if devices is None else devices)
     n_dev = len(devs)
-    chunk = -(-spec.chunk // n_dev) * n_dev  # a multiple of the device count
+    check_out(out, spec, n_dev)
+    chunk, n_chunks = _layout(spec, n_dev)
     P = len(spec.rho)
+    sub = _sub_cases(chunk, P, n_dev)
+    options = _sample_options(spec, fam)
+    check_memory(spec, fam.kind, _case_bytes(spec, fam, options), devs)
+    (out / "chunks").mkdir(parents=True, exist_ok=True)
+    mine = store.spec_hash(_spec_dict(spec))
     meta = {
         "format": FORMAT,
         "spec": _spec_dict(spec),
+        "spec_hash": mine,
+        "chunk_cases": chunk,
+        "call_cases": sub,
         "commit": git_commit(),
         "date": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "jax": jax.__version__,
@@ -299,7 +373,6 @@ def run_sweep(
     }
     if lead:
         (out / "sweep.json").write_text(json.dumps(meta, indent=2) + "\n")
-    n_chunks = -(-spec.cases // chunk)
     bar = tqdm(
         total=spec.cases,
         unit="case",
@@ -318,26 +391,36 @@ def run_sweep(
             skipped += 1
             bar.update(n)
             continue
-        cases = fam.sample(n, spec.seed, start, **_sample_options(spec, fam))
-        t0 = time.perf_counter()
-        if fam.kind == "step":
-            cols, names, work, ref_t = _step_rows(spec, cases, n, chunk, devs)
-            computed += work[0]
-            needed += work[1]
-            ref_s += ref_t
-        else:
-            cols, names = _loop_rows(spec, cases, n, chunk)
-            ref_t = 0.0
-        chunk_s.append(time.perf_counter() - t0 - ref_t)
+        cases = fam.sample(n, spec.seed, start, **options)
+        parts: list[dict[str, Any]] = []
+        chunk_s.append(0.0)
+        for s0 in range(0, n, sub):
+            m = min(sub, n - s0)
+            part = _slice_cases(cases, s0, m)
+            t0 = time.perf_counter()
+            if fam.kind == "step":
+                cols, names, work, ref_t = _step_rows(spec, part, m, sub, devs)
+                computed += work[0]
+                needed += work[1]
+                ref_s += ref_t
+            else:
+                cols, names = _loop_rows(spec, part, m, sub)
+                ref_t = 0.0
+            chunk_s[-1] += time.perf_counter() - t0 - ref_t
+            parts.append(cols)
+            topology_names = names
+            bar.update(m)
+            if fam.kind == "step":  # a closed loop's work is not counted: no waste
+                bar.set_postfix(waste=f"{Work(computed, needed).waste:.2f}")
         solve_s += chunk_s[-1]
-        topology_names = names
-        path = _chunk_path(out, k)
+        cols = {c: np.concatenate([p[c] for p in parts]) for c in parts[0]}
+        path = out / "chunks" / chunk_name(k, jax.process_index(), jax.process_count())
         tmp = path.with_suffix(".tmp")
-        pq.write_table(pa.table(cols), tmp)
+        record = {"spec_hash": mine, "chunk": k, "cases": [start, start + n]}
+        table_k = pa.table(cols).replace_schema_metadata({store.META_KEY: json.dumps(record)})
+        pq.write_table(table_k, tmp)
         tmp.replace(path)  # a killed run leaves no half-written chunk behind
         run += 1
-        bar.update(n)
-        bar.set_postfix(waste=f"{Work(computed, needed).waste:.2f}")
     bar.close()
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
@@ -347,8 +430,9 @@ def run_sweep(
     figs: list[Path] = []
     rows = 0
     if lead:
-        parts = sorted((out / "chunks").glob("chunk_*.parquet"))
-        tab = pa.concat_tables([pq.read_table(p) for p in parts])
+        check_out(out, spec, n_dev)  # nothing foreign arrived while the chunks ran
+        paths = [out / "chunks" / name for k in range(n_chunks) for name in _chunk_names(k)]
+        tab = pa.concat_tables([store.read_chunk(p) for p in paths])
         tab = tab.sort_by([("case", "ascending"), ("point", "ascending")])
         meta.update(
             {
@@ -387,6 +471,35 @@ def run_sweep(
         devices=n_dev,
         processes=jax.process_count(),
         steady_pairs_per_s=_steady_rate(chunk_s, chunk * P),
+    )
+
+
+def _case_bytes(spec: SweepSpec, fam: Any, options: dict[str, Any]) -> int:
+    """Bytes of one case's problem data (float64; a closed loop's scenario), from
+    case 0. A horizon given for a step family is first checked against the
+    memory of the condensed forms (:func:`~ampc_jax.problem.limits.check_memory`)
+    with the family's sizes at its own horizon, before any case of that horizon
+    is built."""
+    if fam.kind == "loop":
+        one = fam.sample(1, spec.seed, 0, **options)
+        return int(sum(np.asarray(x).nbytes for x in jax.tree.leaves(one.scenarios)))
+    if spec.horizon is not None:
+        own = {k: v for k, v in options.items() if k != "horizon"}
+        T = fam.sample(1, spec.seed, 0, **own).topology
+        check_problem_memory(
+            horizon=int(spec.horizon), n_x=T.n_x, n_u=T.n_u, n_y=list(T.output_sizes)
+        )
+    one = fam.sample(1, spec.seed, 0, **options)
+    return int(sum(8 * np.size(x) for x in jax.tree.leaves(one.data)))
+
+
+def _slice_cases(cases: Any, s0: int, m: int) -> Any:
+    """Cases ``s0 .. s0 + m - 1`` of a chunk's :class:`StepCases` or :class:`LoopCases`."""
+    cols = {k: np.asarray(v)[s0 : s0 + m] for k, v in cases.columns.items()}
+    if isinstance(cases, StepCases):
+        return cases._replace(data=jax.tree.map(lambda x: x[s0 : s0 + m], cases.data), columns=cols)
+    return cases._replace(
+        scenarios=jax.tree.map(lambda x: x[s0 : s0 + m], cases.scenarios), columns=cols
     )
 
 

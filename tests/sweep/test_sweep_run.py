@@ -2,7 +2,10 @@
 same table from one device, four forced CPU devices and two processes joined by
 ``jax.distributed`` (JAX's CPU collectives, gloo)."""
 
+import json
 import os
+import re
+import shutil
 import socket
 import subprocess
 import sys
@@ -68,6 +71,147 @@ def test_table_resume_and_refusal(tmp_path, capsys):
     # another grid into the same directory is refused, naming what differs
     assert main(["sweep", *ARGS[:5], "0.3,1", *ARGS[6:], "--out", str(out)]) == 2
     assert "--out" in capsys.readouterr().err
+
+
+SMALL = ["--family", "cruise_step", "--cases", "8", "--chunk", "4", "--quiet", "--no-figures"]
+
+
+class _Bar:
+    """A stand-in for tqdm that records its updates and postfixes."""
+
+    made: list = []
+
+    def __init__(self, *args, **kwargs):
+        self.updates, self.postfix = [], []
+        _Bar.made.append(self)
+
+    def update(self, n):
+        self.updates.append(n)
+
+    def set_postfix(self, **kw):
+        self.postfix.append(kw)
+
+    def close(self):
+        pass
+
+
+def test_a_sweep_never_joins_rows_of_another_spec(tmp_path, capsys, monkeypatch):
+    """Issue 29, 8: with sweep.json deleted, a rerun with another grid joined the
+    old grid's chunks under the new spec, a foreign valid chunk was joined, and a
+    corrupt chunk read "ampc: error: --Could not open ...". Every chunk carries
+    its spec's hash and cases; anything else is refused naming the file.
+    Issue 31, 5: the bar moves after every call of the program, not per chunk."""
+    import tqdm
+
+    import ampc_jax.sweep.run as run
+
+    monkeypatch.setattr(run, "SUB_PAIRS", 4, raising=False)  # calls of 2 cases x 2 points
+    monkeypatch.setattr(tqdm, "tqdm", _Bar)
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert main(["sweep", *SMALL, "--rho", "0.5,2", "--out", str(a)]) == 0
+    bar = _Bar.made[-1]
+    assert main(["sweep", *SMALL, "--rho", "0.5,2", "--seed", "1", "--out", str(b)]) == 0
+    capsys.readouterr()
+    first = _table(a)
+
+    def refused(*argv, name):
+        code = main(["sweep", *SMALL, *argv, "--out", str(a)])
+        err = capsys.readouterr().err
+        assert code == 2, err
+        assert err.startswith("ampc: error: --out: ") and name in err, err
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+        return err
+
+    # sweep.json gone, another grid: the chunks of the old grid are refused
+    (a / "sweep.json").unlink()
+    err = refused("--rho", "0.5,3", name="chunk_00000.parquet")
+    assert "another sweep" in err
+    assert not (a / "sweep.json").exists()  # refused before anything was written
+    # the same spec resumes: both chunks carry its hash
+    assert main(["sweep", *SMALL, "--rho", "0.5,2", "--out", str(a)]) == 0
+    assert "0 chunk(s) run, 2 skipped" in capsys.readouterr().out
+    _same_rows(first, _table(a), exact=True)
+    keep = tmp_path / "keep.parquet"
+    shutil.copy(a / "chunks" / "chunk_00001.parquet", keep)
+    # a valid chunk of another sweep (seed 1) in place of chunk 1
+    shutil.copy(b / "chunks" / "chunk_00001.parquet", a / "chunks" / "chunk_00001.parquet")
+    assert "another sweep" in refused("--rho", "0.5,2", name="chunk_00001.parquet")
+    shutil.copy(keep, a / "chunks" / "chunk_00001.parquet")
+    # a stray chunk beyond this sweep's two
+    shutil.copy(keep, a / "chunks" / "chunk_00007.parquet")
+    assert "not a chunk of this sweep" in refused("--rho", "0.5,2", name="chunk_00007")
+    (a / "chunks" / "chunk_00007.parquet").unlink()
+    # chunk 1 moved to chunk 0's place: its cases are not chunk 0's
+    shutil.copy(a / "chunks" / "chunk_00000.parquet", keep.with_suffix(".0"))
+    shutil.copy(keep, a / "chunks" / "chunk_00000.parquet")
+    assert "holds cases 4..7" in refused("--rho", "0.5,2", name="chunk_00000")
+    # a corrupt chunk and a corrupt sweep.json: one clear line each
+    (a / "chunks" / "chunk_00000.parquet").write_bytes(b"PAR1 not a parquet file")
+    err = refused("--rho", "0.5,2", name="chunk_00000.parquet")
+    assert "not a readable sweep chunk" in err and "--Could" not in err
+    shutil.copy(keep.with_suffix(".0"), a / "chunks" / "chunk_00000.parquet")
+    (a / "sweep.json").write_text("{not json")
+    err = refused("--rho", "0.5,2", name="sweep.json")
+    assert "not a sweep manifest" in err and "--Expecting" not in err
+    (a / "sweep.json").write_text(json.dumps({"spec": [1]}))
+    refused("--rho", "0.5,2", name="sweep.json")
+    (a / "sweep.json").unlink()
+    assert main(["sweep", *SMALL, "--rho", "0.5,2", "--out", str(a)]) == 0
+    _same_rows(first, _table(a), exact=True)
+    # the first run's bar moved after every call of 2 cases, not per chunk of 4
+    assert bar.updates == [2, 2, 2, 2]
+    assert len(bar.postfix) == 4 and all("waste" in p for p in bar.postfix)
+
+
+def test_memory_is_estimated_before_a_sweep_starts(tmp_path, capsys, monkeypatch):
+    """Issue 29, 12: 10^7 rho points ran into XLA's RESOURCE_EXHAUSTED (184 GB)
+    and --chunk 10**9 padded every chunk to 10^9 cases. The grid, a call, a
+    chunk's rows and the joined table are estimated up front: refused naming
+    the flag and the estimate, or (a chunk beyond the cases) one chunk of them."""
+    import ampc_jax.sweep.run as run
+
+    base = ["sweep", "--family", "cruise_step", "--quiet", "--no-figures"]
+    code = main([*base, "--cases", "1", "--rho", "0.1:10:10000000", "--out", str(tmp_path / "r")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("ampc: error: --rho: 10,000,000 points"), err
+    assert re.search(r"[\d.]+ [GTP]B", err) and "available" in err, err
+    assert not (tmp_path / "r" / "sweep.json").exists()
+    # a chunk beyond the cases is one chunk of the cases: nothing padded to 10^9
+    out = tmp_path / "c"
+    assert (
+        main([*base, "--cases", "4", "--rho", "1", "--chunk", str(10**9), "--out", str(out)]) == 0
+    )
+    assert "4 rows (4 cases x 1 rho points)" in capsys.readouterr().out
+    assert json.loads((out / "sweep.json").read_text())["chunk_cases"] == 4
+    # a chunk's rows and the joined table against the memory the machine has
+    code = main([*base, "--cases", str(10**12), "--chunk", str(10**12), "--out", str(out / "x")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("ampc: error: --chunk: ") and "--chunk " in err, err
+    code = main([*base, "--cases", str(10**12), "--out", str(out / "x")])
+    err = capsys.readouterr().err
+    assert (
+        code == 2 and err.startswith("ampc: error: --cases: ") and re.search(r"[\d.]+ [TP]B", err)
+    ), err
+    # on a device: a call against the device's free memory
+    spec = run.SweepSpec(family="cruise_step", cases=8, rho=(1.0,) * 4000)
+
+    class Gpu:
+        platform = "gpu"
+
+        def __init__(self, limit):
+            self.limit = limit
+
+        def memory_stats(self):
+            return {"bytes_limit": self.limit, "bytes_in_use": 0}
+
+    with pytest.raises(ValueError, match=r"^rho: .* 128 MB per device, more than the 100 MB free"):
+        run.check_memory(spec, "step", 1000, [Gpu(10**8)], available=10**12)
+    est = run.check_memory(spec, "step", 1000, [Gpu(10**9)] * 64, available=10**12)
+    assert est["cases_per_call"] == 64 and est["call"] == 64 * 4000 * 32_000
+    # a horizon whose condensed forms do not fit, named before any case of it is built
+    code = main([*base, "--cases", "1", "--horizon", str(10**6), "--out", str(out / "h")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("ampc: error: --horizon: N_p = 1000000"), err
 
 
 def test_bad_flags(capsys, tmp_path):
@@ -147,11 +291,15 @@ def test_four_devices_and_two_processes_give_the_same_table(tmp_path, capsys):
     _same_rows(_table(one), _table(four), exact=False)
 
 
-def test_closed_loop_family(tmp_path, capsys):
+def test_closed_loop_family(tmp_path, capsys, monkeypatch):
+    import tqdm
+
+    monkeypatch.setattr(tqdm, "tqdm", _Bar)
     out = tmp_path / "loops"
     args = ["sweep", "--family", "cruise_lane_change", "--cases", "2", "--rho", "0.5,2"]
     assert main([*args, "--duration", "0.5", "--quiet", "--no-figures", "--out", str(out)]) == 0
     assert "4 closed loops" in capsys.readouterr().out
+    assert _Bar.made[-1].postfix == []  # no waste=nan: a closed loop's work is not counted
     tab = _table(out)
     assert tab.num_rows == 4
     assert set(tab.column("n_steps").to_pylist()) == {10}
