@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -102,6 +103,18 @@ def _show(value: Any, width: int = 80) -> str:
     return text if len(text) <= width else text[: width - 3] + "..."
 
 
+_NAME = re.compile(r"[A-Za-z_]\w{0,63}")
+"""A field name as the messages print it (a key otherwise is shown quoted)."""
+
+
+def _field(key: Any, parent: str = "") -> str:
+    """``parent.key`` for a plain name; ``parent`` (or ``params``) and the key quoted
+    for anything else (an unknown key is the user's text)."""
+    if isinstance(key, str) and _NAME.fullmatch(key):
+        return f"{parent}.{key}" if parent else key
+    return f"{parent or 'params'}: {_show(key, 60)}"
+
+
 def _number(name: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ValueError(f"{name}: expected a number, got {_show(value)}")
@@ -162,7 +175,7 @@ def _settings(value: Any) -> dict[str, Any] | None:
         raise ValueError(f"settings: expected an object (name -> number), got {_show(value)}")
     out: dict[str, Any] = {}
     for key, v in value.items():
-        if not isinstance(key, str) or not key:
+        if not isinstance(key, str) or not _NAME.fullmatch(key):
             raise ValueError(f"settings: expected field names, got {_show(key)}")
         name = f"settings.{key}"
         if hasattr(v, "tolist"):
@@ -178,9 +191,9 @@ def validate_params(doc: Any) -> TunedParams:
     """A :class:`TunedParams` from a decoded file ``doc`` (ValueError naming the field)."""
     if not isinstance(doc, Mapping):
         raise ValueError(f"params: expected a JSON object, got {type(doc).__name__}")
-    unknown = sorted(set(doc) - set(_KEYS))
+    unknown = sorted((k for k in doc if k not in _KEYS), key=str)
     if unknown:
-        raise ValueError(f"{unknown[0]}: unknown field; expected only {list(_KEYS)}")
+        raise ValueError(f"{_field(unknown[0])}: unknown field; expected only {list(_KEYS)}")
     if doc.get("format") != PARAMS_FORMAT:
         raise ValueError(f"format: expected {PARAMS_FORMAT!r}, got {_show(doc.get('format'))}")
     ex = doc.get("example")
@@ -194,9 +207,11 @@ def validate_params(doc: Any) -> TunedParams:
         solver = {}
     if not isinstance(solver, Mapping):
         raise ValueError(f"solver: expected an object, got {_show(solver)}")
-    extra = sorted(set(solver) - {"rho_scale", "relaxation"})
+    extra = sorted((k for k in solver if k not in ("rho_scale", "relaxation")), key=str)
     if extra:
-        raise ValueError(f"solver.{extra[0]}: unknown field; expected rho_scale, relaxation")
+        raise ValueError(
+            f"{_field(extra[0], 'solver')}: unknown field; expected rho_scale, relaxation"
+        )
     prov = doc.get("provenance")
     if prov is not None and not isinstance(prov, Mapping):
         raise ValueError(f"provenance: expected an object, got {_show(prov)}")
