@@ -9,7 +9,11 @@ clamps without saying). What derives from :data:`ACTUATORS`:
   front brakes in ``[FRONT_MIN_NM, 0]``, ``|DTR/2| + |RTV|`` within a rear
   wheel's range);
 * the bridge's configuration (:func:`bridge_kwargs`, passed to
-  ``can_bridge.Bridge``; the bridge's shipped ``vehicle.toml`` must equal it);
+  ``can_bridge.Bridge``; the bridge's shipped ``vehicle.toml`` must equal it),
+  including the geometry of its wheel/vehicle speed check
+  (:func:`wheel_geometry`) and the floor under its rate-of-change limits
+  (:func:`signal_rate_bounds`: the fastest each received signal can change
+  for this vehicle, which the shipped limits must not undercut);
 * the DBC's torque signals, whose range must hold every limit (2 Nm steps).
 
 ``tests/vehicle/test_actuators.py`` fails when any of them disagrees.
@@ -32,11 +36,12 @@ from typing import Any, NamedTuple
 import jax.numpy as jnp
 from jax import Array
 
-from .params import CONTROL_DT, WHEELS
+from .params import CONTROL_DT, WHEELS, VehicleParams
 
 __all__ = [
     "ACTUATORS",
     "FRONT_MIN_NM",
+    "MU_MAX",
     "REAR_MAX_NM",
     "TORQUE_STEP_NM",
     "ActuatorLimits",
@@ -44,6 +49,8 @@ __all__ = [
     "bridge_actuators",
     "bridge_kwargs",
     "load_limits",
+    "signal_rate_bounds",
+    "wheel_geometry",
 ]
 
 TORQUE_STEP_NM = 2.0
@@ -127,8 +134,54 @@ def load_limits(path: str | PathLike[str]) -> ActuatorLimits:
     return ActuatorLimits(tuple(wheels), float(period))  # type: ignore[arg-type]
 
 
-def bridge_kwargs(limits: ActuatorLimits = ACTUATORS) -> dict[str, Any]:
-    """``can_bridge.Bridge`` keyword arguments that give the bridge these limits."""
+MU_MAX = 2.0
+"""The highest road friction the bus can report (the DBC's ``RoadFriction`` maximum)."""
+
+
+def wheel_geometry(vehicle: VehicleParams | None = None) -> dict[str, float]:
+    """The geometry of the bridge's wheel/vehicle speed check (``rx_wheels``).
+
+    A wheel that brakes only cannot turn faster than the road under it; the
+    bridge bounds its circumferential speed ``|omega| R_w`` by the vehicle's
+    speed at that wheel, ``|v_x| + |r| T_w/2 + (|v_y| + |r| a) |delta|``, plus
+    its tolerances (``can_bridge/src/plausibility.rs``)."""
+    p = VehicleParams() if vehicle is None else vehicle
+    return {"radius_m": float(p.R_w), "track_m": float(p.T_w), "cg_to_front_m": float(p.a)}
+
+
+def signal_rate_bounds(
+    vehicle: VehicleParams | None = None,
+    limits: ActuatorLimits = ACTUATORS,
+    mu_max: float = MU_MAX,
+) -> dict[str, float]:
+    """The fastest each received signal of the vehicle's motion can change (per s).
+
+    The bridge refuses a received value that moved faster than its limit
+    (``vehicle.toml``, ``[rx_max_rate]``); these bounds are the physics under
+    those limits, so a real vehicle's signal is never refused:
+
+    * ``LongSpeed``: the tyres' grip, ``mu_max g``;
+    * ``LatSpeed``: ``dv_y/dt = a_y - r v_x``, each at most ``mu_max g``;
+    * ``YawRate``: all lateral grip on the longer axle arm plus the largest
+      torque difference across the track, over ``I_z``;
+    * ``WheelSpeed*``: a wheel's largest torque plus the grip of half the
+      vehicle's weight on it, over ``I_w``.
+    """
+    p = VehicleParams() if vehicle is None else vehicle
+    g_mu = mu_max * p.g
+    t_max = max(max(abs(w.min_nm), abs(w.max_nm)) for w in limits.wheels)
+    yaw = (g_mu * p.m * max(p.a, p.b) + 2.0 * t_max / p.R_w * p.T_w / 2.0) / p.I_z
+    wheel = (t_max + g_mu * p.m / 2.0 * p.R_w) / p.I_w
+    out = {"LongSpeed": g_mu, "LatSpeed": 2.0 * g_mu, "YawRate": yaw}
+    out.update({f"WheelSpeed{w}": wheel for w in WHEELS})
+    return out
+
+
+def bridge_kwargs(
+    limits: ActuatorLimits = ACTUATORS, vehicle: VehicleParams | None = None
+) -> dict[str, Any]:
+    """``can_bridge.Bridge`` keyword arguments that give the bridge these limits
+    and the vehicle's geometry for its wheel/vehicle speed check."""
     w = limits.wheels
     return {
         "period_ms": float(limits.period_ms),
@@ -136,6 +189,7 @@ def bridge_kwargs(limits: ActuatorLimits = ACTUATORS) -> dict[str, Any]:
         "torque_max_nm": [x.max_nm for x in w],
         "rise_nm_per_s": [x.rise_nm_per_s for x in w],
         "release_nm_per_s": [x.release_nm_per_s for x in w],
+        "rx_wheels": wheel_geometry(vehicle),
     }
 
 

@@ -164,6 +164,8 @@ pub struct Message {
     pub len: usize,
     /// E2E Data ID (DBC attribute `E2EDataID`).
     pub data_id: u16,
+    /// Send period, ms (DBC attribute `GenMsgCycleTime`).
+    pub cycle_ms: u32,
     /// Signals in DBC order.
     pub signals: &'static [Signal],
 }
@@ -177,6 +179,7 @@ pub const WHEEL_TORQUE_CMD: Message = Message {
     id: 0x101,
     len: 8,
     data_id: 3073,
+    cycle_ms: 50,
     signals: &[
         CRC,
         COUNTER,
@@ -194,6 +197,7 @@ pub const VEHICLE_MOTION: Message = Message {
     id: 0x201,
     len: 8,
     data_id: 3089,
+    cycle_ms: 20,
     signals: &[
         CRC,
         COUNTER,
@@ -209,6 +213,7 @@ pub const WHEEL_SPEEDS: Message = Message {
     id: 0x202,
     len: 8,
     data_id: 3090,
+    cycle_ms: 20,
     signals: &[
         CRC,
         COUNTER,
@@ -225,6 +230,7 @@ pub const STEERING_STATE: Message = Message {
     id: 0x203,
     len: 4,
     data_id: 3091,
+    cycle_ms: 20,
     signals: &[
         CRC,
         COUNTER,
@@ -239,6 +245,7 @@ pub const VEHICLE_ACCEL: Message = Message {
     id: 0x204,
     len: 6,
     data_id: 3092,
+    cycle_ms: 20,
     signals: &[
         CRC,
         COUNTER,
@@ -254,6 +261,7 @@ pub const DRIVER_DEMAND: Message = Message {
     id: 0x205,
     len: 8,
     data_id: 3093,
+    cycle_ms: 20,
     signals: &[
         CRC,
         COUNTER,
@@ -402,6 +410,7 @@ mod tests {
         let mut current: Option<&Message> = None;
         let mut seen_signals = 0;
         let mut seen_ids = 0;
+        let mut seen_cycles = 0;
         for line in DBC.lines() {
             let t = line.trim();
             if let Some(rest) = t.strip_prefix("BO_ ") {
@@ -435,6 +444,13 @@ mod tests {
                 assert_eq!(s.min, lo.parse::<f64>().unwrap(), "{name}");
                 assert_eq!(s.max, hi.parse::<f64>().unwrap(), "{name}");
                 seen_signals += 1;
+            } else if let Some(rest) = t.strip_prefix("BA_ \"GenMsgCycleTime\" BO_ ") {
+                let mut it = rest.trim_end_matches(';').split_whitespace();
+                let id: u32 = it.next().unwrap().parse().unwrap();
+                let ms: u32 = it.next().unwrap().parse().unwrap();
+                let m = ALL_MESSAGES.iter().find(|m| m.id == id).unwrap();
+                assert_eq!(m.cycle_ms, ms, "{}", m.name);
+                seen_cycles += 1;
             } else if let Some(rest) = t.strip_prefix("BA_ \"E2EDataID\" BO_ ") {
                 let mut it = rest.trim_end_matches(';').split_whitespace();
                 let id: u32 = it.next().unwrap().parse().unwrap();
@@ -447,6 +463,7 @@ mod tests {
         let total: usize = ALL_MESSAGES.iter().map(|m| m.signals.len()).sum();
         assert_eq!(seen_signals, total);
         assert_eq!(seen_ids, ALL_MESSAGES.len());
+        assert_eq!(seen_cycles, ALL_MESSAGES.len());
     }
 
     /// Bytes produced by cantools 45.1 (`db.encode_message`) for the same

@@ -11,7 +11,7 @@ use crate::safety::{LimitRule, WHEELS};
 use std::path::Path;
 use toml::{Table, Value};
 
-const TOP: [&str; 13] = [
+const TOP: [&str; 23] = [
     "period_ms",
     "limit_rule",
     "safe_release_nm_per_s",
@@ -24,7 +24,24 @@ const TOP: [&str; 13] = [
     "rx_max_counter_delta",
     "rx_sync_frames",
     "rx_max_strikes",
+    "rx_window",
+    "rx_min_ok_init",
+    "rx_max_error_init",
+    "rx_min_ok_valid",
+    "rx_max_error_valid",
+    "rx_min_ok_invalid",
+    "rx_max_error_invalid",
+    "rx_confirm_ms",
     "wheels",
+    "rx_max_rate",
+    "rx_wheels",
+];
+const RX_WHEEL_KEYS: [&str; 5] = [
+    "radius_m",
+    "track_m",
+    "cg_to_front_m",
+    "tolerance_mps",
+    "tolerance_rel",
 ];
 const WHEEL_KEYS: [&str; 4] = ["min_nm", "max_nm", "rise_nm_per_s", "release_nm_per_s"];
 
@@ -94,7 +111,49 @@ pub fn apply_str(cfg: &mut BridgeConfig, text: &str, origin: &str) -> Result<()>
             "stop_safe_frames" => cfg.stop_safe_frames = integer(v, name, 1, 100)? as u32,
             "rx_max_counter_delta" => cfg.rx_max_counter_delta = integer(v, name, 1, 14)? as u8,
             "rx_sync_frames" => cfg.rx_sync_frames = integer(v, name, 1, 14)? as u8,
-            "rx_max_strikes" => cfg.rx_max_strikes = integer(v, name, 0, 16)? as u32,
+            // the former name of rx_max_error_valid, kept for older files
+            "rx_max_strikes" | "rx_max_error_valid" => {
+                cfg.rx_sm.max_error_valid = integer(v, name, 0, 16)? as u8
+            }
+            "rx_window" => cfg.rx_sm.window = integer(v, name, 1, 16)? as u8,
+            "rx_min_ok_init" => cfg.rx_sm.min_ok_init = integer(v, name, 1, 16)? as u8,
+            "rx_max_error_init" => cfg.rx_sm.max_error_init = integer(v, name, 0, 16)? as u8,
+            "rx_min_ok_valid" => cfg.rx_sm.min_ok_valid = integer(v, name, 1, 16)? as u8,
+            "rx_min_ok_invalid" => cfg.rx_sm.min_ok_invalid = integer(v, name, 1, 16)? as u8,
+            "rx_max_error_invalid" => cfg.rx_sm.max_error_invalid = integer(v, name, 0, 16)? as u8,
+            "rx_confirm_ms" => cfg.rx_confirm_ns = ms_to_ns(name, number(v, name)?)?,
+            "rx_max_rate" => {
+                let Value::Table(rates) = v else {
+                    return Err(Error::Config(
+                        "rx_max_rate must be a table of signal = rate".into(),
+                    ));
+                };
+                for (sig, rv) in rates {
+                    let key = format!("rx_max_rate.{sig}");
+                    let x = number(rv, &key)?;
+                    let slot = cfg.plausibility.rate_mut(sig).ok_or_else(|| {
+                        let names: Vec<&str> = (0..crate::codec::N_RX)
+                            .flat_map(crate::plausibility::signal_names)
+                            .collect();
+                        key_err(&key, &names)
+                    })?;
+                    *slot = x;
+                }
+            }
+            "rx_wheels" => {
+                let Value::Table(geo) = v else {
+                    return Err(Error::Config("rx_wheels must be a table".into()));
+                };
+                for (gk, gv) in geo {
+                    let key = format!("rx_wheels.{gk}");
+                    let x = number(gv, &key)?;
+                    let slot = cfg
+                        .plausibility
+                        .geometry_mut(gk)
+                        .ok_or_else(|| key_err(&key, &RX_WHEEL_KEYS))?;
+                    *slot = x;
+                }
+            }
             "wheels" => {
                 let Value::Table(wheels) = v else {
                     return Err(Error::Config("wheels must be a table".into()));

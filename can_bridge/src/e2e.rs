@@ -114,12 +114,6 @@ impl Check {
         matches!(self, Check::Ok | Check::OkSomeLost)
     }
 
-    /// Whether the frame counts as a strike against the message's validity
-    /// (INITIAL and SYNC do not: they are the normal way into OK).
-    pub fn is_strike(self) -> bool {
-        !matches!(self, Check::Ok | Check::Initial | Check::Sync)
-    }
-
     /// Short name, as reported in `latest_state()["status"]`.
     pub fn name(self) -> &'static str {
         match self {
@@ -230,65 +224,263 @@ impl Receiver {
     }
 }
 
-/// Validity of a message judged over its last [`WINDOW`] frames (in the
-/// spirit of panda's counter strikes): valid only while the last frame was
-/// usable and at most `max_strikes` of the window were strikes. A frozen,
-/// repeated, jumping or doubled sender is a strike on every frame, so it is
-/// invalid from its first bad frame on and stays invalid until `WINDOW`
-/// frames later at most `max_strikes` remain (`e2e::tests` and the property
-/// tests pin both).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Judge {
-    strikes: u32,
-    seen: u32,
-    last: Option<Check>,
-    max_strikes: u32,
+/// AUTOSAR's profile-independent status of one frame
+/// (`E2E_PCheckStatusType`), as the state machine counts it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum PStatus {
+    /// Usable and in sequence (Profile 1 OK, OKSOMELOST, SYNC).
+    Ok,
+    /// The counter did not move: a frozen, replayed or second sender.
+    Repeated,
+    /// The counter jumped, or was (re)anchored (Profile 1 WRONGSEQUENCE, INITIAL).
+    WrongSequence,
+    /// The frame itself is broken (CRC, length, counter 15) or its values
+    /// implausible.
+    Error,
 }
 
-/// Frames the [`Judge`] looks back over.
+impl Check {
+    /// The Profile 1 status mapped onto the state machine's
+    /// (`E2E_P01MapStatusToSM`, AUTOSAR 4.2 behaviour); the checks Profile 1
+    /// leaves to the receiver map to `Error` (length, counter 15,
+    /// implausible) and `Repeated` (two sources).
+    pub fn p_status(self) -> PStatus {
+        match self {
+            Check::Ok | Check::OkSomeLost | Check::Sync => PStatus::Ok,
+            Check::Repeated | Check::TwoSources => PStatus::Repeated,
+            Check::Initial | Check::WrongSequence => PStatus::WrongSequence,
+            Check::BadLength | Check::BadCrc | Check::InvalidCounter | Check::Implausible => {
+                PStatus::Error
+            }
+        }
+    }
+}
+
+/// Largest window of the state machine.
 pub const WINDOW: u32 = 16;
 
-impl Judge {
-    /// A judge allowing `max_strikes` (0..=WINDOW) strikes per window.
-    pub fn new(max_strikes: u32) -> Self {
-        Judge {
-            strikes: 0,
-            seen: 0,
+/// The receiver state machine's thresholds (AUTOSAR `E2E_SMConfigType`):
+/// counts of [`PStatus::Ok`] and [`PStatus::Error`] over the last `window`
+/// frames decide each transition.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SmConfig {
+    /// Frames the counts look back over (`WindowSize`, 1..=16).
+    pub window: u8,
+    /// INIT -> VALID once at least this many OK (`MinOkStateInit`) ...
+    pub min_ok_init: u8,
+    /// ... and at most this many errors (`MaxErrorStateInit`); more: INVALID.
+    pub max_error_init: u8,
+    /// VALID stays while at least this many OK (`MinOkStateValid`) ...
+    pub min_ok_valid: u8,
+    /// ... and at most this many errors (`MaxErrorStateValid`).
+    pub max_error_valid: u8,
+    /// INVALID -> VALID once at least this many OK (`MinOkStateInvalid`) ...
+    pub min_ok_invalid: u8,
+    /// ... and at most this many errors (`MaxErrorStateInvalid`).
+    pub max_error_invalid: u8,
+}
+
+impl Default for SmConfig {
+    /// The shipped `vehicle.toml`: a window of 8 frames (160 ms at 20 ms);
+    /// valid from the third frame of a fresh sender; one error in 8 frames
+    /// tolerated (a bad CRC costs one frame, issue 29 item 13), two frames
+    /// without a counter step (a frozen sender) are not; once invalid, a
+    /// whole window of sound frames before the message is valid again.
+    fn default() -> Self {
+        SmConfig {
+            window: 8,
+            min_ok_init: 2,
+            max_error_init: 1,
+            min_ok_valid: 7,
+            max_error_valid: 1,
+            min_ok_invalid: 8,
+            max_error_invalid: 0,
+        }
+    }
+}
+
+impl SmConfig {
+    /// Check the thresholds against the window; errors name the setting.
+    pub fn validate(&self) -> std::result::Result<(), String> {
+        let w = self.window;
+        if !(1..=WINDOW as u8).contains(&w) {
+            return Err(format!("rx_window = {w} must be in 1..={WINDOW}"));
+        }
+        for (name, v, lo) in [
+            ("rx_min_ok_init", self.min_ok_init, 1),
+            ("rx_max_error_init", self.max_error_init, 0),
+            ("rx_min_ok_valid", self.min_ok_valid, 1),
+            ("rx_max_error_valid", self.max_error_valid, 0),
+            ("rx_min_ok_invalid", self.min_ok_invalid, 1),
+            ("rx_max_error_invalid", self.max_error_invalid, 0),
+        ] {
+            if !(lo..=w).contains(&v) {
+                return Err(format!("{name} = {v} must be in {lo}..=rx_window ({w})"));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The receiver state machine's state (AUTOSAR `E2E_SMStateType`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum SmState {
+    /// Nothing received since start or the last timeout.
+    NoData,
+    /// A sender is being confirmed.
+    Init,
+    /// The stream is sound: its data may be believed.
+    Valid,
+    /// The stream is not sound: nothing is believed until a window of sound
+    /// frames has passed.
+    Invalid,
+}
+
+/// The AUTOSAR E2E receiver state machine (`E2E_SMCheck`) over one
+/// message's frames, with two rules of this bridge on top:
+///
+/// * **A sender change is invalid at once.** The same counter with another
+///   payload (`TwoSources`) can only be a second sender on the identifier:
+///   the machine goes INVALID and clears its window (AUTOSAR's
+///   `ClearToInvalid`), so it takes `min_ok_invalid` sound frames in a row
+///   before the message is valid again.
+/// * **A sender confirmed in INIT starts VALID with a clean window.** On the
+///   INIT -> VALID transition the window is set to OK throughout (INIT's
+///   INITIAL and its unfilled slots included), so a strict `min_ok_valid` (7
+///   of 8) does not throw a message that has just become valid out again;
+///   AUTOSAR keeps INIT's statuses and leaves unfilled slots "not
+///   available", which works only with a lenient `MinOkStateValid`.
+///
+/// Every other transition is AUTOSAR's: INIT -> VALID at `min_ok_init` OK
+/// and at most `max_error_init` errors (INVALID past that), VALID stays
+/// while `min_ok_valid` OK and at most `max_error_valid` errors, INVALID ->
+/// VALID at `min_ok_invalid` OK and at most `max_error_invalid` errors;
+/// entering INVALID clears the window.
+#[derive(Clone, Debug)]
+pub struct StateMachine {
+    cfg: SmConfig,
+    state: SmState,
+    /// The last `cfg.window` statuses, newest last (`None`: not available).
+    ring: [Option<PStatus>; WINDOW as usize],
+    top: usize,
+    last: Option<Check>,
+}
+
+impl StateMachine {
+    /// A machine in NODATA.
+    pub fn new(cfg: SmConfig) -> Self {
+        StateMachine {
+            cfg,
+            state: SmState::NoData,
+            ring: [None; WINDOW as usize],
+            top: 0,
             last: None,
-            max_strikes: max_strikes.min(WINDOW),
         }
     }
 
-    /// Record one frame's status.
-    pub fn record(&mut self, c: Check) {
-        self.strikes = (self.strikes << 1) | u32::from(c.is_strike());
-        self.seen = (self.seen << 1) | 1;
+    fn window(&self) -> usize {
+        usize::from(self.cfg.window.clamp(1, WINDOW as u8))
+    }
+
+    fn clear(&mut self) {
+        self.ring = [None; WINDOW as usize];
+        self.top = 0;
+    }
+
+    fn add(&mut self, p: PStatus) {
+        let w = self.window();
+        if let Some(slot) = self.ring.get_mut(self.top % w) {
+            *slot = Some(p);
+        }
+        self.top = (self.top + 1) % w;
+    }
+
+    /// (OK, errors) over the window.
+    pub fn counts(&self) -> (u8, u8) {
+        let w = self.window();
+        let seen = self.ring.iter().take(w).flatten();
+        seen.fold((0, 0), |(ok, err), p| match p {
+            PStatus::Ok => (ok + 1, err),
+            PStatus::Error => (ok, err + 1),
+            _ => (ok, err),
+        })
+    }
+
+    fn go_invalid(&mut self) {
+        self.state = SmState::Invalid;
+        self.clear();
+    }
+
+    /// Feed one frame's check; returns the new state.
+    pub fn check(&mut self, c: Check) -> SmState {
         self.last = Some(c);
+        let p = c.p_status();
+        if c == Check::TwoSources && self.state != SmState::NoData {
+            self.go_invalid();
+            return self.state;
+        }
+        self.add(p);
+        let (ok, err) = self.counts();
+        let cfg = self.cfg;
+        match self.state {
+            SmState::NoData => {
+                if p != PStatus::Error {
+                    self.state = SmState::Init;
+                }
+            }
+            SmState::Init => {
+                if err <= cfg.max_error_init && ok >= cfg.min_ok_init {
+                    self.state = SmState::Valid;
+                    let w = self.window();
+                    for slot in self.ring.iter_mut().take(w) {
+                        *slot = Some(PStatus::Ok);
+                    }
+                } else if err > cfg.max_error_init {
+                    self.go_invalid();
+                }
+            }
+            SmState::Valid => {
+                if !(err <= cfg.max_error_valid && ok >= cfg.min_ok_valid) {
+                    self.go_invalid();
+                }
+            }
+            SmState::Invalid => {
+                if err <= cfg.max_error_invalid && ok >= cfg.min_ok_invalid {
+                    self.state = SmState::Valid;
+                }
+            }
+        }
+        self.state
     }
 
-    /// Strikes among the last [`WINDOW`] frames.
-    pub fn strikes(&self) -> u32 {
-        (self.strikes & ((1u32 << WINDOW) - 1)).count_ones()
+    /// The current state.
+    pub fn state(&self) -> SmState {
+        self.state
     }
 
-    /// The last frame's status.
+    /// The last frame's check.
     pub fn last(&self) -> Option<Check> {
         self.last
     }
 
-    /// `Ok(())` if the message is valid, else why not.
-    pub fn verdict(&self) -> std::result::Result<(), &'static str> {
-        match self.last {
-            None => Err("no data"),
-            Some(c) if !c.usable() => Err(c.name()),
-            Some(_) if self.strikes() > self.max_strikes => Err("too many strikes"),
-            Some(_) => Ok(()),
-        }
+    /// Back to NODATA with an empty window (after a timeout).
+    pub fn reset(&mut self) {
+        *self = StateMachine::new(self.cfg);
     }
 
-    /// Forget the history (after a timeout).
-    pub fn reset(&mut self) {
-        *self = Judge::new(self.max_strikes);
+    /// `Ok(())` if the stream is VALID, else why not, by the state and the
+    /// last frame: that frame's problem if it had one, else "initial"/"sync"
+    /// while a sender is being confirmed and "resync" while a window of sound
+    /// frames is still owed.
+    pub fn verdict(&self) -> std::result::Result<(), &'static str> {
+        match (self.state, self.last) {
+            (SmState::Valid, _) => Ok(()),
+            (SmState::NoData, _) | (_, None) => Err("no data"),
+            (_, Some(c)) if c.p_status() != PStatus::Ok => Err(c.name()),
+            (SmState::Init, Some(Check::Sync)) => Err("sync"),
+            (SmState::Init, _) => Err("initial"),
+            (SmState::Invalid, _) => Err("resync"),
+        }
     }
 }
 
@@ -378,46 +570,145 @@ mod tests {
     }
 
     #[test]
-    fn an_intruders_frame_is_never_used_and_the_sensor_recovers() {
-        // Counters 0..4, an intruder's 11 and 12, then the sensor's 5, 6, 7.
+    fn an_intruders_frame_is_never_used_and_the_sensor_recovers_over_a_window() {
+        // Counters 0..4, an intruder's 11 and 12, then the sensor's 5, 6, ...
         let id = 0x0C11;
         let mut r = Receiver::new(id, 8, 2, 2);
-        let mut j = Judge::new(2);
+        let mut sm = StateMachine::new(SmConfig::default());
         for c in 0..5 {
-            j.record(r.check(&mk(id, c, 1)));
+            sm.check(r.check(&mk(id, c, 1)));
         }
-        assert!(j.verdict().is_ok());
+        assert_eq!(sm.state(), SmState::Valid);
         for c in [11, 12] {
             let s = r.check(&mk(id, c, 112));
             assert!(!s.usable(), "{s:?}");
-            j.record(s);
-            assert!(j.verdict().is_err());
+            sm.check(s);
         }
         let got: Vec<Check> = (5..8).map(|c| r.check(&mk(id, c, 1))).collect();
-        for s in &got {
-            j.record(*s);
-        }
         assert_eq!(got, [Check::WrongSequence, Check::Sync, Check::Ok]);
-        assert!(j.verdict().is_ok(), "{:?}", j.verdict());
+        for s in &got {
+            sm.check(*s);
+        }
+        // two jumps in one window: invalid, and a whole window of sound
+        // frames is owed before the message is valid again
+        assert_eq!(sm.verdict(), Err("resync"));
+        for c in 8..13 {
+            sm.check(r.check(&mk(id, c, 1)));
+            assert_eq!(sm.state(), SmState::Invalid, "counter {c}");
+        }
+        sm.check(r.check(&mk(id, 13, 1)));
+        assert_eq!(sm.verdict(), Ok(()));
+    }
+
+    /// Feed `n` checks.
+    fn feed(sm: &mut StateMachine, c: Check, n: usize) {
+        for _ in 0..n {
+            sm.check(c);
+        }
     }
 
     #[test]
-    fn judge_window() {
-        let mut j = Judge::new(2);
-        assert_eq!(j.verdict(), Err("no data"));
-        j.record(Check::Ok);
-        assert!(j.verdict().is_ok());
-        j.record(Check::Repeated);
-        assert_eq!(j.verdict(), Err("repeated"));
-        j.record(Check::OkSomeLost);
-        j.record(Check::OkSomeLost);
-        assert_eq!(j.verdict(), Err("too many strikes"));
-        for _ in 0..WINDOW - 3 {
-            j.record(Check::Ok);
+    fn state_machine_init_valid_invalid() {
+        let mut sm = StateMachine::new(SmConfig::default());
+        assert_eq!(sm.verdict(), Err("no data"));
+        // a bad frame alone does not start anything
+        sm.check(Check::BadCrc);
+        assert_eq!(sm.state(), SmState::NoData);
+        sm.check(Check::Initial);
+        assert_eq!((sm.state(), sm.verdict()), (SmState::Init, Err("initial")));
+        sm.check(Check::Sync);
+        assert_eq!(sm.verdict(), Err("sync"));
+        sm.check(Check::Ok);
+        assert_eq!(sm.state(), SmState::Valid);
+        // a clean window from here: one error tolerated, two not
+        sm.check(Check::BadCrc);
+        assert_eq!(sm.state(), SmState::Valid);
+        sm.check(Check::OkSomeLost);
+        sm.check(Check::BadCrc);
+        assert_eq!(sm.verdict(), Err("wrong crc"));
+        // INVALID with a cleared window: 8 OK in a row, no error
+        feed(&mut sm, Check::Ok, 7);
+        assert_eq!(sm.verdict(), Err("resync"));
+        sm.check(Check::Ok);
+        assert_eq!(sm.verdict(), Ok(()));
+        // too many errors while confirming a sender
+        let mut sm = StateMachine::new(SmConfig::default());
+        sm.check(Check::Initial);
+        sm.check(Check::BadCrc);
+        sm.check(Check::BadCrc);
+        assert_eq!(sm.state(), SmState::Invalid);
+    }
+
+    #[test]
+    fn one_bad_crc_in_eight_frames_keeps_the_message_valid() {
+        // Issue 29 item 13: the bad frame is one error; the next frame, two
+        // counter steps on, is OKSOMELOST, which the state machine counts OK.
+        let id = 0x0C11;
+        let mut r = Receiver::new(id, 8, 2, 2);
+        let mut sm = StateMachine::new(SmConfig::default());
+        let mut valid_after_warmup = 0;
+        for k in 0..400u32 {
+            let mut p = mk(id, (k % 15) as u8, 1);
+            if k % 8 == 7 {
+                p[5] ^= 0x01;
+            }
+            let st = sm.check(r.check(&p));
+            if k >= 3 {
+                valid_after_warmup += u32::from(st == SmState::Valid);
+            }
         }
-        assert_eq!(j.strikes(), 3);
-        j.record(Check::Ok);
-        assert!(j.verdict().is_ok());
+        assert_eq!(valid_after_warmup, 397);
+    }
+
+    #[test]
+    fn a_frozen_sender_is_invalid_within_two_frames_and_two_sources_at_once() {
+        let mut sm = StateMachine::new(SmConfig::default());
+        feed(&mut sm, Check::Ok, 10);
+        sm.check(Check::Repeated);
+        assert_eq!(sm.state(), SmState::Valid);
+        sm.check(Check::Repeated);
+        assert_eq!(sm.verdict(), Err("repeated"));
+        let mut sm = StateMachine::new(SmConfig::default());
+        feed(&mut sm, Check::Ok, 10);
+        sm.check(Check::TwoSources);
+        assert_eq!(sm.verdict(), Err("two sources"));
+        feed(&mut sm, Check::Ok, 7);
+        assert_eq!(sm.state(), SmState::Invalid);
+        sm.check(Check::Ok);
+        assert_eq!(sm.state(), SmState::Valid);
+    }
+
+    #[test]
+    fn a_second_stream_interleaved_keeps_the_message_invalid() {
+        // Every other frame out of sequence: one jump in a window is
+        // tolerated (a sender's glitch), the second is not, and 7 OK in 8
+        // never come back while it lasts.
+        let mut sm = StateMachine::new(SmConfig::default());
+        feed(&mut sm, Check::Ok, 10);
+        sm.check(Check::WrongSequence);
+        sm.check(Check::Sync);
+        assert_eq!(sm.state(), SmState::Valid);
+        for _ in 0..50 {
+            sm.check(Check::WrongSequence);
+            assert_ne!(sm.state(), SmState::Valid);
+            sm.check(Check::Sync);
+            assert_ne!(sm.state(), SmState::Valid);
+        }
+    }
+
+    #[test]
+    fn sm_config_is_validated_by_name() {
+        assert!(SmConfig::default().validate().is_ok());
+        let c = SmConfig {
+            min_ok_valid: 9,
+            ..SmConfig::default()
+        };
+        assert!(c.validate().unwrap_err().contains("rx_min_ok_valid = 9"));
+        let c = SmConfig {
+            window: 17,
+            ..SmConfig::default()
+        };
+        assert!(c.validate().unwrap_err().contains("rx_window"));
     }
 
     use proptest::prelude::*;
@@ -440,15 +731,19 @@ mod tests {
         /// Whatever arrives: data is used only from a frame with a right CRC
         /// whose counter advanced by 1..=max_delta from the last used or
         /// anchored one, at least `sync` in-sequence frames after the anchor;
-        /// a valid verdict needs a usable last frame and <= max_strikes strikes.
+        /// the state machine is VALID only with its thresholds met over the
+        /// window, never right after a second source, and never after
+        /// `window - min_ok_valid + 1` repeats in a row.
         #[test]
         fn receiver_uses_only_confirmed_in_sequence_frames(
             steps in proptest::collection::vec(arb_step(), 1..200),
-            max_delta in 1u8..5, sync in 1u8..4, max_strikes in 0u32..4,
+            max_delta in 1u8..5, sync in 1u8..4, max_err in 0u8..3, slack in 0u8..3,
         ) {
             let id = 0x0C12;
             let mut r = Receiver::new(id, 8, max_delta, sync);
-            let mut j = Judge::new(max_strikes);
+            let cfg = SmConfig { min_ok_valid: 8 - slack, max_error_valid: max_err, ..SmConfig::default() };
+            let mut sm = StateMachine::new(cfg);
+            let mut repeats = 0u8;
             let mut c = 0u8;
             let mut v = 0u8;
             let mut run = 0u32; // in-sequence frames since the last anchor
@@ -460,7 +755,7 @@ mod tests {
                 if corrupt { p[4] ^= 0x40; }
                 let repeat = prev == Some(c) && !corrupt;
                 let s = r.check(&p);
-                j.record(s);
+                let state = sm.check(s);
                 if s.usable() {
                     prop_assert!(!corrupt);
                     let d = (c + 15 - prev.unwrap()) % 15;
@@ -472,14 +767,18 @@ mod tests {
                     Check::Ok | Check::OkSomeLost | Check::Sync => { prev = Some(c); run += 1; }
                     _ => {}
                 }
-                if j.verdict().is_ok() {
-                    prop_assert!(s.usable());
-                    prop_assert!(j.strikes() <= max_strikes);
+                if state == SmState::Valid {
+                    let (ok, err) = sm.counts();
+                    prop_assert!(ok >= cfg.min_ok_valid && err <= cfg.max_error_valid);
+                    prop_assert!(s != Check::TwoSources);
                 }
-                // A repeated counter is never usable, and never valid.
+                // A repeated counter is never usable; repeats in a row soon invalid.
                 if repeat {
                     prop_assert!(matches!(s, Check::Repeated | Check::TwoSources));
-                    prop_assert!(j.verdict().is_err());
+                }
+                repeats = if s == Check::Repeated { repeats + 1 } else { 0 };
+                if repeats > slack {
+                    prop_assert!(state != SmState::Valid);
                 }
             }
         }

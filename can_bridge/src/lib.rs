@@ -16,6 +16,7 @@ pub mod config;
 pub mod e2e;
 pub mod error;
 pub mod frame;
+pub mod plausibility;
 pub mod safety;
 pub mod scheduler;
 pub mod slcan;

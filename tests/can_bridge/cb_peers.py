@@ -142,7 +142,9 @@ def state_message(
 
 
 MOTION = {"LongSpeed": 12.34, "LatSpeed": -0.56, "YawRate": 0.123}
-WHEELS = {"WheelSpeedFL": 40.1, "WheelSpeedFR": 40.2, "WheelSpeedRL": 39.9, "WheelSpeedRR": -1.5}
+# physically consistent with MOTION (the bridge checks it): front wheels, which
+# brake only, rolling at 12.34 m/s (35.2 rad/s at R = 0.351 m), rear wheels driving
+WHEELS = {"WheelSpeedFL": 35.1, "WheelSpeedFR": 35.2, "WheelSpeedRL": 39.9, "WheelSpeedRR": 40.3}
 STEER = {"SteeringAngle": 0.0456}
 ACCEL = {"LongAccel": -3.21, "LatAccel": 7.5}
 DRIVER = {"DriverTorque": -1234.5, "SetSpeed": 17.25, "RoadFriction": 0.35}

@@ -125,7 +125,7 @@ def test_socketcand_transport_end_to_end() -> None:
     assert [f["mode"] for f in frames[-3:]] == ["safe"] * 3
     assert st["valid"] is True
     assert st["yaw_rate_radps"] == pytest.approx(0.123)
-    assert st["wheel_speeds_radps"] == pytest.approx((40.1, 40.2, 39.9, -1.5))
+    assert st["wheel_speeds_radps"] == pytest.approx((35.1, 35.2, 39.9, 40.3))
     assert st["lat_accel_mps2"] == pytest.approx(7.5)
     assert st["set_speed_mps"] == pytest.approx(17.25)
     s = bridge.stats()

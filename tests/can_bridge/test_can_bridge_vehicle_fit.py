@@ -236,8 +236,9 @@ def test_f2_mostly_bad_crc_is_invalid() -> None:
 
 def test_f2_one_out_of_sequence_frame_does_not_take_over_the_counter() -> None:
     """Counters 0..4, then an intruder's 11 and 12 (LongSpeed 88, plausible):
-    neither is believed; the real sensor's frames are valid again within
-    three frames."""
+    neither is believed; the real sensor's next frame is a second jump in the
+    state machine's window, so the message is invalid until a whole window of
+    sound frames (8) has passed, then valid with the real sensor's values."""
     bridge = can_bridge.Bridge("slcan-pty:", period_ms=PERIOD_MS)
     bridge.start()
     bus = _slcan_bus(bridge.pty_path)
@@ -252,8 +253,9 @@ def test_f2_one_out_of_sequence_frame_does_not_take_over_the_counter() -> None:
             time.sleep(0.03)
             seen.append(bridge.latest_state()["long_speed_mps"])
         assert 88.0 not in [round(s or 0, 2) for s in seen], seen
-        assert bridge.latest_state()["valid"] is False
         _send_good(bus, range(5, 9))
+        assert bridge.latest_state()["valid"] is False
+        _send_good(bus, range(9, 15))
         time.sleep(0.05)
         st = bridge.latest_state()
         assert st["valid"] is True and st["long_speed_mps"] == pytest.approx(12.34), st

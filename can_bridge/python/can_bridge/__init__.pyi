@@ -83,6 +83,9 @@ class Stats(TypedDict):
     rx_lost_frames: int
     rx_sync: int
     rx_implausible: int
+    rx_implausible_rate: int
+    rx_inconsistent: int
+    rx_discarded: int
     rx_length_errors: int
     rx_malformed: int
     rx_unknown_id: int
@@ -102,7 +105,7 @@ class Bridge:
     def __init__(
         self,
         channel: str,
-        period_ms: float = 50.0,
+        period_ms: float | None = None,
         *,
         config: str | PathLike[str] | None = None,
         torque_min_nm: PerWheel | None = None,
@@ -124,6 +127,16 @@ class Bridge:
         rx_max_counter_delta: int | None = None,
         rx_sync_frames: int | None = None,
         rx_max_strikes: int | None = None,
+        rx_window: int | None = None,
+        rx_min_ok_init: int | None = None,
+        rx_max_error_init: int | None = None,
+        rx_min_ok_valid: int | None = None,
+        rx_max_error_valid: int | None = None,
+        rx_min_ok_invalid: int | None = None,
+        rx_max_error_invalid: int | None = None,
+        rx_confirm_ms: float | None = None,
+        rx_max_rate: dict[str, float] | None = None,
+        rx_wheels: dict[str, float] | None = None,
         trace_capacity: int | None = None,
         rt_priority: int | None = None,
     ) -> None: ...

@@ -148,18 +148,10 @@ impl Bridge {
         let rx_stop = Arc::new(AtomicBool::new(false));
         let rx_stop2 = rx_stop.clone();
         let rx_shared = shared.clone();
-        let timeout = self.cfg.state_timeout_ns;
         let rx = match std::thread::Builder::new()
             .name("can_bridge-rx".into())
-            .spawn(move || {
-                run_rx(
-                    &rx_shared,
-                    source.as_mut(),
-                    timeout,
-                    &rx_stop2,
-                    log_tx.as_ref(),
-                )
-            }) {
+            .spawn(move || run_rx(&rx_shared, source.as_mut(), &rx_stop2, log_tx.as_ref()))
+        {
             Ok(h) => h,
             Err(e) => {
                 shared.request_stop();
@@ -222,7 +214,7 @@ impl Bridge {
     pub fn latest_state(&self) -> VehicleState {
         let sh = self.shared();
         let rx = lock(&sh.rx);
-        rx.state(monotonic_ns(), self.cfg.state_timeout_ns)
+        rx.state(monotonic_ns())
     }
 
     /// Pseudo-terminal slave path for `slcan-pty:` while running (`None`

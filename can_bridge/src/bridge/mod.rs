@@ -12,14 +12,15 @@ mod stats;
 mod tx;
 
 pub use lifecycle::{set_realtime, Bridge};
-pub use rx::{run_rx, RxStore, VehicleState, RX_NAMES};
+pub use rx::{run_rx, RxConfig, RxStore, VehicleState, RX_NAMES};
 pub use shared::{Shared, SEQ_LIMIT, SEQ_MAX_STEP};
 pub use stats::Stats;
 pub use tx::{run_tx, TransportState, TxCounters, TxParams};
 
 use crate::channel::ChannelSpec;
-use crate::e2e;
+use crate::e2e::{self, SmConfig};
 use crate::error::{clip, Error, Result};
+use crate::plausibility::Plausibility;
 use crate::safety::SafetyConfig;
 use std::path::PathBuf;
 use std::sync::{Mutex, MutexGuard};
@@ -61,8 +62,13 @@ pub struct BridgeConfig {
     pub rx_max_counter_delta: u8,
     /// In-sequence frames that confirm a (re)anchored counter (SyncCounter).
     pub rx_sync_frames: u8,
-    /// Strikes allowed among a message's last 16 frames.
-    pub rx_max_strikes: u32,
+    /// The receiver's E2E state machine: window and thresholds.
+    pub rx_sm: SmConfig,
+    /// A usable received frame is believed once it has stood this long with
+    /// no sign of a second sender, ns.
+    pub rx_confirm_ns: u64,
+    /// Rates of change and the wheel/vehicle speed check.
+    pub plausibility: Plausibility,
     /// Tick records kept for `tick_trace` (allocated at start).
     pub trace_capacity: usize,
     /// Run the transmit thread under `SCHED_FIFO` at this priority (1..=99);
@@ -86,9 +92,25 @@ impl BridgeConfig {
             stop_safe_frames: 3,
             rx_max_counter_delta: 2,
             rx_sync_frames: 2,
-            rx_max_strikes: 2,
+            rx_sm: SmConfig::default(),
+            rx_confirm_ns: 25_000_000,
+            plausibility: Plausibility::default(),
             trace_capacity: 0,
             rt_priority: None,
+        }
+    }
+
+    /// The receive side's settings; the brake-only wheels are those whose
+    /// actuator cannot drive (`max_nm` 0).
+    pub fn rx_config(&self) -> RxConfig {
+        RxConfig {
+            max_delta: self.rx_max_counter_delta,
+            sync_frames: self.rx_sync_frames,
+            sm: self.rx_sm,
+            confirm_ns: self.rx_confirm_ns,
+            state_timeout_ns: self.state_timeout_ns,
+            plausibility: self.plausibility,
+            undriven: self.safety.wheels.map(|w| w.max_nm <= 0.0),
         }
     }
 
@@ -130,9 +152,21 @@ impl BridgeConfig {
         if !(1..=e2e::MAX_COUNTER).contains(&self.rx_sync_frames) {
             return Err(Error::Config("rx_sync_frames must be in 1..=14".into()));
         }
-        if self.rx_max_strikes > e2e::WINDOW {
-            return Err(Error::Config("rx_max_strikes must be in 0..=16".into()));
+        self.rx_sm.validate().map_err(Error::Config)?;
+        if !(1_000_000..=1_000_000_000).contains(&self.rx_confirm_ns) {
+            return Err(Error::Config(format!(
+                "rx_confirm_ms = {} must be between 1 and 1000",
+                ms(self.rx_confirm_ns)
+            )));
         }
+        if self.rx_confirm_ns >= self.state_timeout_ns {
+            return Err(Error::Config(format!(
+                "rx_confirm_ms = {} must be below state_timeout_ms ({}): a frame must be believed before it times out",
+                ms(self.rx_confirm_ns),
+                ms(self.state_timeout_ns)
+            )));
+        }
+        self.plausibility.validate().map_err(Error::Config)?;
         if self.trace_capacity > 10_000_000 {
             return Err(Error::Config(
                 "trace_capacity must be at most 10,000,000".into(),

@@ -1,33 +1,122 @@
-//! The receive loop and the received vehicle state: each frame checked
-//! (length, E2E Profile 1 CRC and counter, plausibility), judged over its
-//! message's window, and stored only if usable.
+//! The receive loop and the received vehicle state. Each frame of a
+//! received message goes through, in order: its length and E2E Profile 1
+//! CRC and counter (`e2e::Receiver`); its values' DBC range, rate of change
+//! and, for the speeds, wheel-against-vehicle consistency
+//! (`plausibility`); then the message's AUTOSAR E2E state machine
+//! (`e2e::StateMachine`). A usable frame's values are believed only once
+//! they have stood for `confirm_ns` with no sign of a second sender on the
+//! identifier (a repeated counter with other data, a counter jump, a
+//! restart): a frame an intruder slips in ahead of the real sender is
+//! contradicted by the real sender's next frame, one cycle later at most,
+//! and is thrown away unbelieved (`docs/bus-safety.md`).
 
 use super::{lock, Shared};
 use crate::candump::{Dir, LogSender};
 use crate::codec::{N_RX, RX_MESSAGES};
-use crate::e2e::{Check, Judge, Receiver};
+use crate::e2e::{Check, Receiver, SmConfig, SmState, StateMachine};
 use crate::frame::CanFrame;
+use crate::plausibility::Plausibility;
 use crate::scheduler::{monotonic_ns, realtime_ns};
 use crate::transport::{RxItem, Source};
+use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 /// Receive thread poll timeout, ms (bounds stop latency).
 const RX_POLL_MS: i32 = 20;
 
+/// Usable frames kept per message while they wait to be believed.
+const PENDING: usize = 16;
+
+/// Indices into [`RX_MESSAGES`].
+const MOTION: usize = 0;
+const WHEELS: usize = 1;
+const STEERING: usize = 2;
+
+/// Everything the receive side is configured with.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RxConfig {
+    /// Largest counter step still in sequence (AUTOSAR MaxDeltaCounter).
+    pub max_delta: u8,
+    /// In-sequence frames confirming a (re)anchored counter (SyncCounter).
+    pub sync_frames: u8,
+    /// The E2E state machine's window and thresholds.
+    pub sm: SmConfig,
+    /// A usable frame is believed once it has stood this long with no sign
+    /// of a second sender, ns.
+    pub confirm_ns: u64,
+    /// A message without a believed frame this long is invalid, ns; a
+    /// message silent this long restarts its counter and state machine.
+    pub state_timeout_ns: u64,
+    /// Rates of change and the wheel/vehicle speed check.
+    pub plausibility: Plausibility,
+    /// Wheels that brake only (their actuator's `max_nm` is 0), FL, FR, RL, RR.
+    pub undriven: [bool; 4],
+}
+
+impl Default for RxConfig {
+    /// The shipped `vehicle.toml`.
+    fn default() -> Self {
+        RxConfig {
+            max_delta: 2,
+            sync_frames: 2,
+            sm: SmConfig::default(),
+            confirm_ns: 25_000_000,
+            state_timeout_ns: 250_000_000,
+            plausibility: Plausibility::default(),
+            undriven: [true, true, false, false],
+        }
+    }
+}
+
 #[derive(Debug, Clone)]
 struct RxSlotState {
     receiver: Receiver,
-    judge: Judge,
-    /// Last frame that passed length and CRC (for the resync after a gap).
+    sm: StateMachine,
+    /// Last frame that passed length and CRC (for the restart after a gap).
     last_seen_ns: Option<u64>,
-    /// Last usable frame.
-    last_ok_ns: Option<u64>,
-    values: [f64; 4],
+    /// Usable frames waiting to be believed: (arrival, values), oldest first.
+    pending: VecDeque<(u64, [f64; 4])>,
+    /// The last believed frame: (arrival, values).
+    believed: Option<(u64, [f64; 4])>,
+    /// The rate check's reference: the last usable, plausible frame
+    /// (arrival, counter if known, values).
+    reference: Option<(u64, Option<u8>, [f64; 4])>,
+}
+
+impl RxSlotState {
+    /// Believe the pending frames that have stood for `confirm`.
+    fn promote(&mut self, now: u64, confirm: u64) {
+        while let Some(&(t, v)) = self.pending.front() {
+            if t.saturating_add(confirm) > now {
+                break;
+            }
+            self.believed = Some((t, v));
+            self.pending.pop_front();
+        }
+    }
+
+    /// What is believed at `now` (without changing anything).
+    fn believed_at(&self, now: u64, confirm: u64) -> Option<(u64, [f64; 4])> {
+        self.pending
+            .iter()
+            .rev()
+            .find(|(t, _)| t.saturating_add(confirm) <= now)
+            .copied()
+            .or(self.believed)
+    }
+
+    /// A sign of a second sender or a restart: nothing waiting is believed,
+    /// and the rate check falls back to the last believed frame.
+    fn discard_pending(&mut self) {
+        self.pending.clear();
+        self.reference = self.believed.map(|(t, v)| (t, None, v));
+    }
 }
 
 /// Receive-side state and counters.
 #[derive(Debug, Clone)]
 pub struct RxStore {
+    cfg: RxConfig,
     slots: Vec<RxSlotState>,
     pub(super) rx_frames: u64,
     pub(super) rx_crc_errors: u64,
@@ -38,6 +127,9 @@ pub struct RxStore {
     pub(super) rx_lost_frames: u64,
     pub(super) rx_sync: u64,
     pub(super) rx_implausible: u64,
+    pub(super) rx_implausible_rate: u64,
+    pub(super) rx_inconsistent: u64,
+    pub(super) rx_discarded: u64,
     pub(super) rx_length_errors: u64,
     pub(super) rx_malformed: u64,
     pub(super) rx_unknown_id: u64,
@@ -56,17 +148,19 @@ pub const RX_NAMES: [&str; N_RX] = [
 ];
 
 impl RxStore {
-    /// Empty state; see [`BridgeConfig`] for the receiver settings.
-    pub fn new(max_delta: u8, sync_frames: u8, max_strikes: u32) -> Self {
+    /// Empty state.
+    pub fn new(cfg: RxConfig) -> Self {
         RxStore {
+            cfg,
             slots: RX_MESSAGES
                 .iter()
                 .map(|m| RxSlotState {
-                    receiver: Receiver::new(m.data_id, m.len, max_delta, sync_frames),
-                    judge: Judge::new(max_strikes),
+                    receiver: Receiver::new(m.data_id, m.len, cfg.max_delta, cfg.sync_frames),
+                    sm: StateMachine::new(cfg.sm),
                     last_seen_ns: None,
-                    last_ok_ns: None,
-                    values: [0.0; 4],
+                    pending: VecDeque::with_capacity(PENDING),
+                    believed: None,
+                    reference: None,
                 })
                 .collect(),
             rx_frames: 0,
@@ -78,6 +172,9 @@ impl RxStore {
             rx_lost_frames: 0,
             rx_sync: 0,
             rx_implausible: 0,
+            rx_implausible_rate: 0,
+            rx_inconsistent: 0,
+            rx_discarded: 0,
             rx_length_errors: 0,
             rx_malformed: 0,
             rx_unknown_id: 0,
@@ -87,42 +184,143 @@ impl RxStore {
         }
     }
 
-    /// Check, judge and (if usable and plausible) store one received frame.
-    pub fn on_frame(&mut self, f: &CanFrame, now_ns: u64, state_timeout_ns: u64) -> Check {
+    /// The configuration.
+    pub fn config(&self) -> &RxConfig {
+        &self.cfg
+    }
+
+    /// The latest usable values of message `m` no older than the state
+    /// timeout (the other side of the wheel/vehicle speed check).
+    fn fresh_reference(&self, m: usize, now: u64) -> Option<[f64; 4]> {
+        let (t, _, v) = self.slots.get(m)?.reference?;
+        (now.saturating_sub(t) <= self.cfg.state_timeout_ns).then_some(v)
+    }
+
+    /// Why `values` of message `m` are not physical, if they are not: the
+    /// rate of change from the last accepted frame, or the wheel speeds
+    /// against the vehicle speed. Returns (counter to bump, message).
+    fn physical(
+        &self,
+        m: usize,
+        values: &[f64; 4],
+        counter: Option<u8>,
+        now: u64,
+    ) -> Option<(bool, String)> {
+        let msg = RX_MESSAGES.get(m)?;
+        let p = &self.cfg.plausibility;
+        let slot = self.slots.get(m)?;
+        if let Some((t, c0, prev)) = slot.reference {
+            let elapsed = now.saturating_sub(t);
+            if elapsed <= self.cfg.state_timeout_ns {
+                let steps = match (c0, counter) {
+                    (Some(a), Some(b)) => u64::from((b + 15 - a) % 15).max(1),
+                    _ => 1,
+                };
+                let dt = elapsed.max(steps * u64::from(msg.cycle_ms) * 1_000_000);
+                if let Some((name, a, b)) = p.rate_violation(m, msg, &prev, values, dt as f64 / 1e9)
+                {
+                    return Some((
+                        true,
+                        format!(
+                            "{}: {name} {a} -> {b} in {} ms is faster than its rate limit",
+                            msg.name,
+                            dt / 1_000_000
+                        ),
+                    ));
+                }
+            }
+        }
+        let steer = self.fresh_reference(STEERING, now).map(|v| v[0]);
+        let pair = match m {
+            MOTION => self
+                .fresh_reference(WHEELS, now)
+                .map(|w| ([values[0], values[1], values[2]], w)),
+            WHEELS => self
+                .fresh_reference(MOTION, now)
+                .map(|v| ([v[0], v[1], v[2]], *values)),
+            _ => None,
+        };
+        let (motion, wheels) = pair?;
+        let (i, v, bound) = p.wheel_violation(motion, &wheels, steer, self.cfg.undriven)?;
+        Some((
+            false,
+            format!(
+                "{}: wheel {} turns at {v:.2} m/s, faster than a brake-only wheel can at {:.2} m/s vehicle speed (bound {bound:.2})",
+                msg.name,
+                crate::safety::WHEELS.get(i).copied().unwrap_or("?"),
+                motion[0]
+            ),
+        ))
+    }
+
+    /// Check, judge and (if usable and plausible) hold one received frame
+    /// until it is believed.
+    pub fn on_frame(&mut self, f: &CanFrame, now_ns: u64) -> Check {
         self.rx_frames += 1;
         let idx = RX_MESSAGES
             .iter()
             .position(|m| m.id == f.id() && !f.is_extended() && !f.is_remote());
-        let Some((m, slot)) = idx.and_then(|i| Some((RX_MESSAGES.get(i)?, self.slots.get_mut(i)?)))
-        else {
+        let Some((i, m)) = idx.and_then(|i| Some((i, RX_MESSAGES.get(i)?))) else {
             self.rx_unknown_id += 1;
             return Check::BadLength;
         };
-        // After a gap the counter is anchored afresh (INITIAL, then SYNC).
-        if slot
-            .last_seen_ns
-            .is_none_or(|t| now_ns.saturating_sub(t) > state_timeout_ns)
-        {
-            slot.receiver.resync();
-            slot.judge.reset();
-        }
-        let mut verdict = slot.receiver.check(f.data());
-        if !matches!(verdict, Check::BadLength | Check::BadCrc) {
-            slot.last_seen_ns = Some(now_ns);
-        }
+        let (confirm, timeout) = (self.cfg.confirm_ns, self.cfg.state_timeout_ns);
+        let mut verdict = {
+            let Some(slot) = self.slots.get_mut(i) else {
+                return Check::BadLength;
+            };
+            slot.promote(now_ns, confirm);
+            // After a gap the counter is anchored afresh (INITIAL, then SYNC)
+            // and the state machine starts from NODATA.
+            if slot
+                .last_seen_ns
+                .is_none_or(|t| now_ns.saturating_sub(t) > timeout)
+            {
+                slot.receiver.resync();
+                slot.sm.reset();
+            }
+            let v = slot.receiver.check(f.data());
+            if !matches!(v, Check::BadLength | Check::BadCrc) {
+                slot.last_seen_ns = Some(now_ns);
+            }
+            v
+        };
         let mut values = [0.0; 4];
         if verdict.usable() {
             m.decode_values(f.data(), &mut values);
             if let Some((name, v)) = m.implausible(&values[..m.signals.len() - 2]) {
                 verdict = Check::Implausible;
                 self.last_error = Some(format!("{}: {name} = {v} is implausible", m.name));
+            } else if let Some((rate, why)) =
+                self.physical(i, &values, crate::e2e::counter_of(f.data()), now_ns)
+            {
+                verdict = Check::Implausible;
+                if rate {
+                    self.rx_implausible_rate += 1;
+                } else {
+                    self.rx_inconsistent += 1;
+                }
+                self.last_error = Some(why);
             }
         }
-        slot.judge.record(verdict);
+        let Some(slot) = self.slots.get_mut(i) else {
+            return verdict;
+        };
+        if matches!(
+            verdict,
+            Check::TwoSources | Check::WrongSequence | Check::Initial
+        ) {
+            self.rx_discarded += slot.pending.len() as u64;
+            slot.discard_pending();
+        }
+        slot.sm.check(verdict);
         match verdict {
             Check::Ok | Check::OkSomeLost => {
-                slot.values = values;
-                slot.last_ok_ns = Some(now_ns);
+                if slot.pending.len() >= PENDING {
+                    slot.pending.pop_front();
+                }
+                slot.pending.push_back((now_ns, values));
+                slot.reference = Some((now_ns, crate::e2e::counter_of(f.data()), values));
                 if verdict == Check::OkSomeLost {
                     self.rx_lost_frames += 1;
                 }
@@ -149,18 +347,25 @@ impl RxStore {
     }
 
     /// The vehicle state as of `now_ns`.
-    pub fn state(&self, now_ns: u64, state_timeout_ns: u64) -> VehicleState {
+    pub fn state(&self, now_ns: u64) -> VehicleState {
+        let (confirm, timeout) = (self.cfg.confirm_ns, self.cfg.state_timeout_ns);
+        let believed: Vec<Option<(u64, [f64; 4])>> = self
+            .slots
+            .iter()
+            .map(|s| s.believed_at(now_ns, confirm))
+            .collect();
         let mut status = ["no data"; N_RX];
-        for (st, slot) in status.iter_mut().zip(&self.slots) {
+        for ((st, slot), b) in status.iter_mut().zip(&self.slots).zip(&believed) {
             // A sender that keeps sending bad frames is reported by what is
             // wrong with them ("repeated", ...), not merely as a timeout.
             let fresh = slot
                 .last_seen_ns
-                .is_some_and(|t| now_ns.saturating_sub(t) <= state_timeout_ns);
-            *st = match (slot.last_ok_ns, slot.judge.verdict()) {
-                (_, Err(why)) if fresh || slot.last_ok_ns.is_none() => why,
+                .is_some_and(|t| now_ns.saturating_sub(t) <= timeout);
+            *st = match (b, slot.sm.verdict()) {
+                (_, Err(why)) if fresh || b.is_none() => why,
+                (None, Ok(())) if slot.sm.state() == SmState::Valid => "confirming",
                 (None, _) => "no data",
-                (Some(t), _) if now_ns.saturating_sub(t) > state_timeout_ns => "timeout",
+                (Some((t, _)), _) if now_ns.saturating_sub(*t) > timeout => "timeout",
                 (Some(_), Err(why)) => why,
                 (Some(_), Ok(())) => "ok",
             };
@@ -175,14 +380,10 @@ impl RxStore {
                 .collect::<Vec<_>>()
                 .join("; ")
         });
-        let get = |i: usize| {
-            self.slots
-                .get(i)
-                .and_then(|s| s.last_ok_ns.map(|t| (t, s.values)))
-        };
+        let get = |i: usize| believed.get(i).copied().flatten();
         let (motion, wheels, steer, accel, driver) = (get(0), get(1), get(2), get(3), get(4));
         // The state is as old as its oldest message, and has no age until
-        // every message has arrived once.
+        // every message has been believed once.
         let ages: [Option<u64>; N_RX] = [motion, wheels, steer, accel, driver]
             .map(|x| x.map(|(t, _)| now_ns.saturating_sub(t)));
         let age_ms = if ages.iter().all(Option::is_some) {
@@ -210,7 +411,7 @@ impl RxStore {
 }
 
 /// The received vehicle state, from the five received messages
-/// ([`RX_NAMES`]). Values are those of each message's last usable frame
+/// ([`RX_NAMES`]). Values are those of each message's last believed frame
 /// (`None` until there is one); `valid` is true only while all five are
 /// judged valid (`status`, `reason` say why not).
 #[derive(Clone, Debug, PartialEq)]
@@ -249,7 +450,6 @@ pub struct VehicleState {
 pub fn run_rx(
     shared: &Shared,
     source: &mut dyn Source,
-    state_timeout_ns: u64,
     stop: &AtomicBool,
     log: Option<&LogSender>,
 ) {
@@ -260,7 +460,7 @@ pub fn run_rx(
                 if let Some(l) = log {
                     l.log(realtime_ns(), &f, Dir::Rx);
                 }
-                lock(&shared.rx).on_frame(&f, monotonic_ns(), state_timeout_ns);
+                lock(&shared.rx).on_frame(&f, monotonic_ns());
             }
             Ok(Some(RxItem::Malformed)) => lock(&shared.rx).rx_malformed += 1,
             Ok(Some(RxItem::BusError)) => lock(&shared.rx).bus_errors += 1,
@@ -280,154 +480,127 @@ pub fn run_rx(
 mod tests {
     use super::super::testutil::MS;
     use super::*;
+    use crate::codec::{
+        DRIVER_DEMAND, STEERING_STATE, VEHICLE_ACCEL, VEHICLE_MOTION, WHEEL_SPEEDS,
+    };
 
-    /// index into `RX_MESSAGES`), all with counter `c`.
-    fn all_but(rx: &mut RxStore, skip: Option<usize>, c: u8, t: u64, to: u64) {
-        use crate::codec::{
-            DRIVER_DEMAND, STEERING_STATE, VEHICLE_ACCEL, VEHICLE_MOTION, WHEEL_SPEEDS,
-        };
-        let frames = [
-            VEHICLE_MOTION.encode(&[12.34, -0.5, 0.25], c),
-            WHEEL_SPEEDS.encode(&[40.1, 40.2, 40.3, 40.4], c),
-            STEERING_STATE.encode(&[0.1234], c),
-            VEHICLE_ACCEL.encode(&[-3.21, 7.5], c),
-            DRIVER_DEMAND.encode(&[-1234.5, 17.25, 0.35], c),
-        ];
-        for (i, f) in frames.into_iter().enumerate() {
-            if Some(i) != skip {
-                rx.on_frame(&f.unwrap(), t, to);
+    const CYCLE: u64 = 20 * MS;
+    const T0: u64 = 10_000 * MS;
+
+    /// Healthy values, physically consistent: 12.34 m/s, front wheels
+    /// rolling at that speed (35.2 rad/s at R = 0.351 m), rear ones driving.
+    fn healthy(m: usize) -> Vec<f64> {
+        match m {
+            0 => vec![12.34, -0.5, 0.25],
+            1 => vec![35.1, 35.2, 40.3, 40.4],
+            2 => vec![0.1234],
+            3 => vec![-3.21, 7.5],
+            _ => vec![-1234.5, 17.25, 0.35],
+        }
+    }
+
+    fn frame_of(m: usize, values: &[f64], c: u8) -> CanFrame {
+        let msg = [
+            &VEHICLE_MOTION,
+            &WHEEL_SPEEDS,
+            &STEERING_STATE,
+            &VEHICLE_ACCEL,
+            &DRIVER_DEMAND,
+        ][m];
+        msg.encode(values, c).unwrap()
+    }
+
+    /// Feed one healthy frame of each received message but `skip`, counter `c`.
+    fn all_but(rx: &mut RxStore, skip: Option<usize>, c: u8, t: u64) {
+        for m in 0..N_RX {
+            if Some(m) != skip {
+                rx.on_frame(&frame_of(m, &healthy(m), c % 15), t);
             }
         }
     }
 
-    /// One healthy frame of every received message, counter `c`.
-    fn all_five(rx: &mut RxStore, c: u8, t: u64, to: u64) {
-        all_but(rx, None, c, t, to);
+    /// Cycles `from..to` of healthy frames of every message, 20 ms apart.
+    fn cycles(rx: &mut RxStore, from: u64, to: u64) {
+        for k in from..to {
+            all_but(rx, None, (k % 15) as u8, T0 + k * CYCLE);
+        }
+    }
+
+    fn store() -> RxStore {
+        RxStore::new(RxConfig::default())
     }
 
     #[test]
-    fn receive_checks_and_state_validity() {
-        use crate::codec::VEHICLE_MOTION;
-        let mut rx = RxStore::new(2, 2, 2);
-        let to = 250 * MS;
-        let t = 10_000 * MS;
-        let s = rx.state(t, to);
-        assert!(
-            !s.valid
-                && s.reason
-                    .as_deref()
-                    .unwrap()
-                    .contains("VehicleMotion: no data")
-        );
-        all_five(&mut rx, 0, t, to);
-        all_five(&mut rx, 1, t, to);
-        assert_eq!(rx.state(t, to).status, ["sync"; N_RX]);
-        all_five(&mut rx, 2, t + MS, to);
-        let s = rx.state(t + 2 * MS, to);
+    fn a_sound_frame_is_believed_once_it_has_stood_for_the_confirmation_time() {
+        let mut rx = store();
+        let s = rx.state(T0);
+        assert!(!s.valid && s.reason.unwrap().contains("VehicleMotion: no data"));
+        cycles(&mut rx, 0, 2);
+        assert_eq!(rx.state(T0 + CYCLE).status, ["sync"; N_RX]);
+        cycles(&mut rx, 2, 3);
+        // valid stream, nothing believed yet: the first usable frame is 25 ms away
+        let t2 = T0 + 2 * CYCLE;
+        assert_eq!(rx.state(t2 + MS).status, ["confirming"; N_RX]);
+        assert!(!rx.state(t2 + 24 * MS).valid);
+        let s = rx.state(t2 + 25 * MS);
         assert!(s.valid, "{s:?}");
         assert!((s.long_speed_mps.unwrap() - 12.34).abs() < 1e-9);
         assert!((s.wheel_speeds_radps.unwrap()[3] - 40.4).abs() < 1e-9);
-        assert_eq!(s.age_ms, Some(1.0));
-        assert_eq!(s.status, ["ok"; N_RX]);
-        // Bad CRC: rejected, value unchanged; one strike keeps it valid.
-        let mut bad = VEHICLE_MOTION
-            .encode(&[19.0, 0.0, 0.0], 3)
-            .unwrap()
-            .data()
-            .to_vec();
-        bad[0] ^= 1;
-        rx.on_frame(&CanFrame::new(0x201, false, &bad).unwrap(), t + 3 * MS, to);
-        assert_eq!(rx.rx_crc_errors, 1);
-        assert_eq!(rx.state(t + 3 * MS, to).status[0], "wrong crc");
-        rx.on_frame(
-            &VEHICLE_MOTION.encode(&[1.0, 0.0, 0.0], 3).unwrap(),
-            t + 4 * MS,
-            to,
-        );
-        assert!(rx.state(t + 4 * MS, to).valid);
-        // A repeat: invalid at once, and counted.
-        rx.on_frame(
-            &VEHICLE_MOTION.encode(&[1.0, 0.0, 0.0], 3).unwrap(),
-            t + 5 * MS,
-            to,
-        );
-        assert_eq!(rx.rx_repeated, 1);
-        assert_eq!(rx.state(t + 5 * MS, to).status[0], "repeated");
-        // Implausible value: not used.
-        rx.on_frame(
-            &VEHICLE_MOTION.encode(&[150.0, 0.0, 0.0], 4).unwrap(),
-            t + 6 * MS,
-            to,
-        );
-        assert_eq!(rx.rx_implausible, 1);
-        assert!((rx.state(t + 6 * MS, to).long_speed_mps.unwrap() - 1.0).abs() < 1e-9);
-        // Wrong length, unknown id.
-        rx.on_frame(&CanFrame::new(0x203, false, &[0; 8]).unwrap(), t, to);
-        rx.on_frame(&CanFrame::new(0x555, false, &[0; 8]).unwrap(), t, to);
-        assert_eq!(rx.rx_length_errors, 1);
-        assert_eq!(rx.rx_unknown_id, 1);
-        // Goes invalid when it stops arriving; after the gap it re-synchronises.
-        assert_eq!(rx.state(t + 300 * MS, to).status[1], "timeout");
-        let sync = rx.rx_sync;
-        all_five(&mut rx, 9, t + 600 * MS, to);
-        all_five(&mut rx, 10, t + 601 * MS, to);
-        assert_eq!(rx.rx_sync, sync + 2 * N_RX as u64);
-        assert!(!rx.state(t + 601 * MS, to).valid);
-        all_five(&mut rx, 11, t + 602 * MS, to);
-        assert!(rx.state(t + 602 * MS, to).valid);
+        assert!((s.lat_accel_mps2.unwrap() - 7.5).abs() < 1e-9);
+        assert!((s.road_friction.unwrap() - 0.35).abs() < 1e-9);
+        assert_eq!(s.age_ms, Some(25.0));
     }
 
     #[test]
-    fn accel_and_driver_demand_decode_into_the_state() {
-        let mut rx = RxStore::new(2, 2, 2);
-        let to = 250 * MS;
-        let t = 10_000 * MS;
-        let s = rx.state(t, to);
-        assert_eq!(
-            (s.long_accel_mps2, s.driver_torque_nm, s.road_friction),
-            (None, None, None)
-        );
-        for c in 0..3 {
-            all_five(&mut rx, c, t + u64::from(c) * 20 * MS, to);
-        }
-        let s = rx.state(t + 45 * MS, to);
-        assert!(s.valid, "{s:?}");
-        let near = |x: Option<f64>, want: f64| (x.unwrap() - want).abs() < 1e-9;
-        assert!(near(s.long_accel_mps2, -3.21), "{s:?}");
-        assert!(near(s.lat_accel_mps2, 7.5), "{s:?}");
-        assert!(near(s.driver_torque_nm, -1234.5), "{s:?}");
-        assert!(near(s.set_speed_mps, 17.25), "{s:?}");
-        assert!(near(s.road_friction, 0.35), "{s:?}");
-        // Oldest of the five: all fed at t + 40 ms.
-        assert_eq!(s.age_ms, Some(5.0));
+    fn what_is_wrong_is_reported_and_counted() {
+        let mut rx = store();
+        cycles(&mut rx, 0, 10);
+        let t = T0 + 10 * CYCLE;
+        assert!(rx.state(t).valid);
+        // bad CRC: refused and counted, one error is tolerated
+        let mut bad = frame_of(0, &[19.0, 0.0, 0.0], 10).data().to_vec();
+        bad[0] ^= 1;
+        rx.on_frame(&CanFrame::new(0x201, false, &bad).unwrap(), t);
+        all_but(&mut rx, Some(0), 10, t);
+        assert_eq!(rx.rx_crc_errors, 1);
+        cycles(&mut rx, 11, 13);
+        assert!(rx.state(T0 + 13 * CYCLE).valid);
+        // a value outside the DBC's range: not used, counted
+        rx.on_frame(&frame_of(0, &[150.0, 0.0, 0.0], 13), T0 + 13 * CYCLE);
+        assert_eq!(rx.rx_implausible, 1);
+        assert!((rx.state(T0 + 14 * CYCLE).long_speed_mps.unwrap() - 12.34).abs() < 1e-9);
+        // wrong length, unknown identifier
+        rx.on_frame(&CanFrame::new(0x203, false, &[0; 8]).unwrap(), t);
+        rx.on_frame(&CanFrame::new(0x555, false, &[0; 8]).unwrap(), t);
+        assert_eq!((rx.rx_length_errors, rx.rx_unknown_id), (1, 1));
+        // silence: timeout; after the gap the stream restarts (INITIAL, SYNC)
+        let late = T0 + 13 * CYCLE + 300 * MS;
+        assert_eq!(rx.state(late).status[1], "timeout");
+        let sync = rx.rx_sync;
+        cycles(&mut rx, 40, 42);
+        assert_eq!(rx.rx_sync, sync + 2 * N_RX as u64);
+        assert!(!rx.state(T0 + 41 * CYCLE).valid);
+        cycles(&mut rx, 42, 43);
+        assert!(rx.state(T0 + 42 * CYCLE + 25 * MS).valid);
     }
 
     #[test]
     fn a_missing_accel_or_driver_demand_makes_the_state_invalid() {
         for (skip, name) in [(3, "VehicleAccel"), (4, "DriverDemand")] {
-            let mut rx = RxStore::new(2, 2, 2);
-            let to = 250 * MS;
-            let t = 10_000 * MS;
-            // Never received: no data, and no age for the whole state.
-            for c in 0..4 {
-                all_but(&mut rx, Some(skip), c, t + u64::from(c) * 20 * MS, to);
+            let mut rx = store();
+            for k in 0..6u64 {
+                all_but(&mut rx, Some(skip), k as u8, T0 + k * CYCLE);
             }
-            let s = rx.state(t + 70 * MS, to);
-            assert!(!s.valid);
+            let s = rx.state(T0 + 6 * CYCLE);
             assert_eq!(s.reason.as_deref(), Some(&*format!("{name}: no data")));
-            assert_eq!(s.status[skip], "no data");
             assert_eq!(s.age_ms, None);
-            // Received, then it stops while the others go on: timeout.
-            let mut rx = RxStore::new(2, 2, 2);
-            for c in 0..4 {
-                all_five(&mut rx, c, t + u64::from(c) * 20 * MS, to);
+            let mut rx = store();
+            cycles(&mut rx, 0, 6);
+            assert!(rx.state(T0 + 6 * CYCLE).valid);
+            for k in 6..25u64 {
+                all_but(&mut rx, Some(skip), (k % 15) as u8, T0 + k * CYCLE);
             }
-            assert!(rx.state(t + 70 * MS, to).valid);
-            for c in 4..20u8 {
-                all_but(&mut rx, Some(skip), c % 15, t + u64::from(c) * 20 * MS, to);
-            }
-            let s = rx.state(t + 390 * MS, to);
-            assert!(!s.valid);
+            let s = rx.state(T0 + 25 * CYCLE);
             assert_eq!(s.reason.as_deref(), Some(&*format!("{name}: timeout")));
             assert!(s.age_ms.unwrap() > 250.0, "{s:?}");
         }
@@ -435,36 +608,22 @@ mod tests {
 
     #[test]
     fn a_corrupt_or_implausible_accel_or_driver_demand_is_not_used() {
-        use crate::codec::{DRIVER_DEMAND, VEHICLE_ACCEL};
-        let to = 250 * MS;
-        let t = 10_000 * MS;
-        for (skip, m) in [(3, &VEHICLE_ACCEL), (4, &DRIVER_DEMAND)] {
-            let mut rx = RxStore::new(2, 2, 2);
-            for c in 0..3 {
-                all_five(&mut rx, c, t + u64::from(c) * 20 * MS, to);
-            }
-            assert!(rx.state(t + 40 * MS, to).valid);
-            let before = rx.state(t + 40 * MS, to);
-            // Bad CRC on every frame from now on: rejected, then invalid by
-            // the strikes in its window; the last good values stay.
-            let other: &[f64] = if skip == 3 {
-                &[1.0, 1.0]
-            } else {
-                &[1.0, 1.0, 1.0]
-            };
-            for c in 3..7u8 {
-                let ts = t + u64::from(c) * 20 * MS;
-                all_but(&mut rx, Some(skip), c, ts, to);
-                let mut d = m.encode(other, c).unwrap().data().to_vec();
+        for skip in [3usize, 4] {
+            let mut rx = store();
+            cycles(&mut rx, 0, 6);
+            let before = rx.state(T0 + 6 * CYCLE);
+            assert!(before.valid);
+            let other: Vec<f64> = healthy(skip).iter().map(|x| x + 1.0).collect();
+            for k in 6..10u64 {
+                let t = T0 + k * CYCLE;
+                all_but(&mut rx, Some(skip), k as u8, t);
+                let mut d = frame_of(skip, &other, k as u8).data().to_vec();
                 d[0] ^= 0x01;
-                rx.on_frame(&CanFrame::new(m.id, false, &d).unwrap(), ts, to);
+                rx.on_frame(&CanFrame::new(0x201 + skip as u32, false, &d).unwrap(), t);
             }
-            let s = rx.state(t + 121 * MS, to);
+            let s = rx.state(T0 + 10 * CYCLE);
             assert!(!s.valid);
-            assert_eq!(
-                s.reason.as_deref(),
-                Some(&*format!("{}: wrong crc", m.name))
-            );
+            assert!(s.reason.unwrap().contains("wrong crc"));
             assert_eq!(rx.rx_crc_errors, 4);
             assert_eq!(
                 (s.long_accel_mps2, s.driver_torque_nm, s.road_friction),
@@ -474,27 +633,202 @@ mod tests {
                     before.road_friction
                 )
             );
-            // Implausible values (outside the DBC's [min|max]) are not used.
-            let mut rx = RxStore::new(2, 2, 2);
-            for c in 0..3 {
-                all_five(&mut rx, c, t + u64::from(c) * 20 * MS, to);
-            }
+            // beyond the DBC's [min|max]
+            let mut rx = store();
+            cycles(&mut rx, 0, 6);
             let bad: &[f64] = if skip == 3 {
                 &[25.0, 0.0]
             } else {
                 &[0.0, 10.0, 0.02]
             };
-            rx.on_frame(&m.encode(bad, 3).unwrap(), t + 60 * MS, to);
+            rx.on_frame(&frame_of(skip, bad, 6), T0 + 6 * CYCLE);
             assert_eq!(rx.rx_implausible, 1);
-            let s = rx.state(t + 61 * MS, to);
-            assert_eq!(s.status[skip], "implausible");
-            assert!(s
-                .reason
+            assert!(rx
+                .last_error
+                .as_deref()
                 .unwrap()
-                .starts_with(&format!("{}: implausible", m.name)));
-            assert!(rx.last_error.as_deref().unwrap().starts_with(m.name));
+                .starts_with(RX_NAMES[skip]));
+            let s = rx.state(T0 + 6 * CYCLE + MS);
             assert!((s.long_accel_mps2.unwrap() + 3.21).abs() < 1e-9);
-            assert!((s.road_friction.unwrap() - 0.35).abs() < 1e-9);
         }
+    }
+
+    /// A real sender at 12.34 m/s every 20 ms and an intruder on the same
+    /// identifier with valid CRCs at 20 m/s: `intruder` lists (time after the
+    /// real frame of cycle `k0`, counter) of its VehicleMotion frames. Returns
+    /// the samples (every ms) that were valid at the intruder's speed, and
+    /// whether the state is valid at the real speed at the end.
+    fn intrude(intruder: &[(u64, u64)]) -> (usize, bool, RxStore) {
+        let mut rx = store();
+        let k0 = 20u64;
+        let mut events: Vec<(u64, bool, u64)> =
+            (0..k0 + 60).map(|k| (T0 + k * CYCLE, true, k)).collect();
+        events.extend(
+            intruder
+                .iter()
+                .map(|&(dt, c)| (T0 + k0 * CYCLE + dt, false, c)),
+        );
+        events.sort();
+        let fake = [20.0, -0.5, 0.25];
+        let mut believed = 0;
+        let mut next = 0;
+        let end = T0 + (k0 + 60) * CYCLE;
+        for now in (T0..end).step_by(MS as usize) {
+            while next < events.len() && events[next].0 <= now {
+                let (t, real, c) = events[next];
+                if real {
+                    all_but(&mut rx, None, (c % 15) as u8, t);
+                } else {
+                    rx.on_frame(&frame_of(0, &fake, (c % 15) as u8), t);
+                }
+                next += 1;
+            }
+            let s = rx.state(now);
+            if s.valid && s.long_speed_mps.is_some_and(|v| (v - 20.0).abs() < 0.5) {
+                believed += 1;
+            }
+        }
+        let s = rx.state(end);
+        let recovered = s.valid && (s.long_speed_mps.unwrap() - 12.34).abs() < 1e-9;
+        (believed, recovered, rx)
+    }
+
+    #[test]
+    fn no_intruder_sample_is_ever_believed() {
+        let k = 20u64;
+        let patterns: Vec<(&str, Vec<(u64, u64)>)> = vec![
+            // one frame a counter or two ahead of the real sender, 5 ms
+            // before the real sender's next frame
+            ("+1", vec![(15 * MS, k + 1)]),
+            ("+2", vec![(15 * MS, k + 2)]),
+            // three in sequence after a jump
+            (
+                "three after a jump",
+                (0..3).map(|j| (12 * MS + j * MS, k + 7 + j)).collect(),
+            ),
+            // an interleaved second stream, its own counter two ahead
+            (
+                "interleaved",
+                (0..30).map(|j| (j * CYCLE + 10 * MS, k + j + 2)).collect(),
+            ),
+            // a replayed stream with a constant counter offset
+            (
+                "replayed +1",
+                (0..30).map(|j| (j * CYCLE + 10 * MS, k + j + 1)).collect(),
+            ),
+            // an intruder phase-locked just before the real sender, its
+            // counter one ahead each time
+            (
+                "leading",
+                (0..30).map(|j| (j * CYCLE + 19 * MS, k + j + 1)).collect(),
+            ),
+        ];
+        for (name, p) in patterns {
+            let (believed, recovered, rx) = intrude(&p);
+            assert_eq!(believed, 0, "{name}: intruder samples believed");
+            assert!(recovered, "{name}: the real sender is not valid again");
+            assert!(
+                rx.rx_discarded + rx.rx_wrong_sequence + rx.rx_two_sources > 0,
+                "{name}"
+            );
+        }
+    }
+
+    #[test]
+    fn two_sources_make_the_message_invalid_until_a_window_has_passed() {
+        let mut rx = store();
+        cycles(&mut rx, 0, 10);
+        let t = T0 + 10 * CYCLE;
+        // the same counter as the last frame, other data
+        rx.on_frame(&frame_of(0, &[12.5, -0.5, 0.25], 9), t - 10 * MS);
+        assert_eq!(rx.state(t - 9 * MS).status[0], "two sources");
+        for k in 10..17 {
+            cycles(&mut rx, k, k + 1);
+            assert!(!rx.state(T0 + k * CYCLE + 25 * MS).valid, "cycle {k}");
+        }
+        cycles(&mut rx, 17, 18);
+        assert!(rx.state(T0 + 17 * CYCLE + 25 * MS).valid);
+    }
+
+    #[test]
+    fn one_bad_crc_in_eight_frames_keeps_the_state_valid() {
+        // Issue 29 item 13.
+        let mut rx = store();
+        let mut valid = 0;
+        for k in 0..200u64 {
+            let t = T0 + k * CYCLE;
+            if k % 8 == 7 {
+                let mut d = frame_of(0, &healthy(0), (k % 15) as u8).data().to_vec();
+                d[3] ^= 0x10;
+                rx.on_frame(&CanFrame::new(0x201, false, &d).unwrap(), t);
+                all_but(&mut rx, Some(0), (k % 15) as u8, t);
+            } else {
+                all_but(&mut rx, None, (k % 15) as u8, t);
+            }
+            if k >= 4 {
+                valid += u32::from(rx.state(t + 10 * MS).valid);
+            }
+        }
+        assert_eq!(valid, 196);
+        assert_eq!(rx.rx_crc_errors, 25);
+    }
+
+    #[test]
+    fn a_speed_jumping_faster_than_a_vehicle_can_is_implausible() {
+        // Issue 29 item 4: 12 <-> 85 m/s every 20 ms, sound E2E.
+        let mut rx = store();
+        cycles(&mut rx, 0, 10);
+        let mut believed_fast = 0;
+        let mut valid_late = 0;
+        for k in 10..60u64 {
+            let t = T0 + k * CYCLE;
+            let v = if k % 2 == 0 { 12.34 } else { 85.0 };
+            rx.on_frame(&frame_of(0, &[v, -0.5, 0.25], (k % 15) as u8), t);
+            all_but(&mut rx, Some(0), (k % 15) as u8, t);
+            for dt in [MS, 10 * MS, 19 * MS] {
+                let s = rx.state(t + dt);
+                believed_fast += usize::from(s.valid && s.long_speed_mps.unwrap() > 50.0);
+                valid_late += usize::from(k >= 13 && s.valid);
+            }
+        }
+        assert_eq!((believed_fast, valid_late), (0, 0));
+        assert_eq!(rx.rx_implausible_rate, 25);
+        assert!(rx.last_error.unwrap().contains("LongSpeed 12.34 -> 85"));
+        // a real acceleration at 8 m/s^2 is plausible
+        let mut rx = store();
+        for k in 0..50u64 {
+            let t = T0 + k * CYCLE;
+            let v = 10.0 + 0.16 * k as f64;
+            rx.on_frame(&frame_of(0, &[v, -0.5, 0.25], (k % 15) as u8), t);
+            let w = v / 0.351;
+            rx.on_frame(&frame_of(1, &[w, w, w, w], (k % 15) as u8), t);
+            for m in 2..N_RX {
+                rx.on_frame(&frame_of(m, &healthy(m), (k % 15) as u8), t);
+            }
+        }
+        assert_eq!(rx.rx_implausible, 0, "{:?}", rx.last_error);
+        assert!(rx.state(T0 + 50 * CYCLE).valid);
+    }
+
+    #[test]
+    fn front_wheels_faster_than_the_vehicle_are_inconsistent() {
+        let mut rx = store();
+        cycles(&mut rx, 0, 10);
+        for k in 10..30u64 {
+            let t = T0 + k * CYCLE;
+            let c = (k % 15) as u8;
+            rx.on_frame(&frame_of(0, &healthy(0), c), t);
+            // 40 m/s on every wheel while the vehicle makes 12.34
+            rx.on_frame(&frame_of(1, &[114.0; 4], c), t);
+            for m in 2..N_RX {
+                rx.on_frame(&frame_of(m, &healthy(m), c), t);
+            }
+        }
+        let s = rx.state(T0 + 30 * CYCLE);
+        assert!(!s.valid);
+        assert_eq!(s.status[1], "implausible");
+        assert_eq!(rx.rx_inconsistent, 20);
+        assert!(rx.last_error.unwrap().contains("brake-only"));
+        assert!((s.wheel_speeds_radps.unwrap()[0] - 35.1).abs() < 1e-9);
     }
 }

@@ -61,11 +61,7 @@ impl Shared {
             safety: cfg.safety,
             on_loss: cfg.on_transport_loss,
             tx: Mutex::new(TxCounters::new(cfg.period_ns, cfg.trace_capacity)),
-            rx: Mutex::new(RxStore::new(
-                cfg.rx_max_counter_delta,
-                cfg.rx_sync_frames,
-                cfg.rx_max_strikes,
-            )),
+            rx: Mutex::new(RxStore::new(cfg.rx_config())),
             log_dropped: Arc::new(AtomicU64::new(0)),
             log_errors: Arc::new(AtomicU64::new(0)),
             health: Mutex::new(None),

@@ -61,8 +61,16 @@ pub struct Stats {
     pub rx_lost_frames: u64,
     /// Frames spent (re)synchronising a counter (INITIAL, SYNC).
     pub rx_sync: u64,
-    /// E2E-valid frames with a value outside its DBC range.
+    /// E2E-valid frames whose values are not physical (all kinds).
     pub rx_implausible: u64,
+    /// ... of which a value changed faster than its signal's rate limit.
+    pub rx_implausible_rate: u64,
+    /// ... of which a brake-only wheel turned faster than the vehicle.
+    pub rx_inconsistent: u64,
+    /// Usable frames never believed: a second sender's sign (a repeated
+    /// counter with other data, a jump, a restart) came before they had
+    /// stood for the confirmation time.
+    pub rx_discarded: u64,
     /// Received frames rejected for a wrong length.
     pub rx_length_errors: u64,
     /// Unparsable lines or messages from the transport.
@@ -136,6 +144,9 @@ impl Bridge {
             rx_lost_frames: rx.rx_lost_frames,
             rx_sync: rx.rx_sync,
             rx_implausible: rx.rx_implausible,
+            rx_implausible_rate: rx.rx_implausible_rate,
+            rx_inconsistent: rx.rx_inconsistent,
+            rx_discarded: rx.rx_discarded,
             rx_length_errors: rx.rx_length_errors,
             rx_malformed: rx.rx_malformed,
             rx_unknown_id: rx.rx_unknown_id,

@@ -289,6 +289,34 @@ pub enum Setting {
     Flag(fn(&mut BridgeConfig) -> &mut bool),
     /// A path (`None` clears it).
     Path(fn(&mut BridgeConfig) -> &mut Option<PathBuf>),
+    /// A mapping of names to real numbers, each set by the setter.
+    Table(fn(&mut BridgeConfig, &str, f64) -> Result<(), Error>),
+}
+
+fn rx_max_rate(c: &mut BridgeConfig, name: &str, v: f64) -> Result<(), Error> {
+    let slot = c.plausibility.rate_mut(name).ok_or_else(|| {
+        let names: Vec<&str> = (0..crate::codec::N_RX)
+            .flat_map(crate::plausibility::signal_names)
+            .collect();
+        Error::Config(format!(
+            "rx_max_rate has no signal {} (received signals: {})",
+            crate::error::clip(name),
+            names.join(", ")
+        ))
+    })?;
+    *slot = v;
+    Ok(())
+}
+
+fn rx_wheels(c: &mut BridgeConfig, name: &str, v: f64) -> Result<(), Error> {
+    let slot = c.plausibility.geometry_mut(name).ok_or_else(|| {
+        Error::Config(format!(
+            "rx_wheels has no key {} (radius_m, track_m, cg_to_front_m, tolerance_mps, tolerance_rel)",
+            crate::error::clip(name)
+        ))
+    })?;
+    *slot = v;
+    Ok(())
 }
 
 fn limit_rule(c: &mut BridgeConfig, s: &str) -> Result<(), Error> {
@@ -367,10 +395,42 @@ pub const SETTINGS: &[(&str, Setting)] = &[
         "rx_sync_frames",
         Setting::Int(1, 14, |c, v| c.rx_sync_frames = v as u8),
     ),
+    // the former name of rx_max_error_valid
     (
         "rx_max_strikes",
-        Setting::Int(0, 16, |c, v| c.rx_max_strikes = v as u32),
+        Setting::Int(0, 16, |c, v| c.rx_sm.max_error_valid = v as u8),
     ),
+    (
+        "rx_window",
+        Setting::Int(1, 16, |c, v| c.rx_sm.window = v as u8),
+    ),
+    (
+        "rx_min_ok_init",
+        Setting::Int(1, 16, |c, v| c.rx_sm.min_ok_init = v as u8),
+    ),
+    (
+        "rx_max_error_init",
+        Setting::Int(0, 16, |c, v| c.rx_sm.max_error_init = v as u8),
+    ),
+    (
+        "rx_min_ok_valid",
+        Setting::Int(1, 16, |c, v| c.rx_sm.min_ok_valid = v as u8),
+    ),
+    (
+        "rx_max_error_valid",
+        Setting::Int(0, 16, |c, v| c.rx_sm.max_error_valid = v as u8),
+    ),
+    (
+        "rx_min_ok_invalid",
+        Setting::Int(1, 16, |c, v| c.rx_sm.min_ok_invalid = v as u8),
+    ),
+    (
+        "rx_max_error_invalid",
+        Setting::Int(0, 16, |c, v| c.rx_sm.max_error_invalid = v as u8),
+    ),
+    ("rx_confirm_ms", Setting::Ms(|c| &mut c.rx_confirm_ns)),
+    ("rx_max_rate", Setting::Table(rx_max_rate)),
+    ("rx_wheels", Setting::Table(rx_wheels)),
     (
         "trace_capacity",
         Setting::Int(0, 10_000_000, |c, v| c.trace_capacity = v as usize),
@@ -405,6 +465,24 @@ pub fn apply(cfg: &mut BridgeConfig, name: &str, obj: &Bound<'_, PyAny>) -> Resu
         Setting::Text(want, set) => set(cfg, &string(obj, name, want)?)?,
         Setting::Flag(field) => *field(cfg) = flag(obj, name)?,
         Setting::Path(field) => *field(cfg) = Some(path(obj, name)?),
+        Setting::Table(set) => {
+            let d = obj.cast::<PyDict>().map_err(|_| {
+                Error::Config(format!(
+                    "{name} must be a dict of names to numbers, got {}",
+                    short_repr(obj)
+                ))
+            })?;
+            for (k, v) in d.iter() {
+                let key: String = k.extract().map_err(|_| {
+                    Error::Config(format!("{name}: key {} is not a str", short_repr(&k)))
+                })?;
+                set(
+                    cfg,
+                    &key,
+                    real(&v, &format!("{name}[{key:?}]"), Error::Config)?,
+                )?;
+            }
+        }
     }
     Ok(())
 }
@@ -565,6 +643,9 @@ pub fn stats_dict<'py>(py: Python<'py>, s: &Stats) -> PyResult<Bound<'py, PyDict
     d.set_item("rx_lost_frames", s.rx_lost_frames)?;
     d.set_item("rx_sync", s.rx_sync)?;
     d.set_item("rx_implausible", s.rx_implausible)?;
+    d.set_item("rx_implausible_rate", s.rx_implausible_rate)?;
+    d.set_item("rx_inconsistent", s.rx_inconsistent)?;
+    d.set_item("rx_discarded", s.rx_discarded)?;
     d.set_item("rx_length_errors", s.rx_length_errors)?;
     d.set_item("rx_malformed", s.rx_malformed)?;
     d.set_item("rx_unknown_id", s.rx_unknown_id)?;

@@ -209,10 +209,26 @@ struct Link {
 }
 
 impl Link {
-    /// Note an echo written now.
-    fn echo_sent(&self) {
-        self.echoes_out.fetch_add(1, Ordering::AcqRel);
+    /// Write `msg` (which ends with an echo) as one message, counting the
+    /// echo out before the write: its answer can be read by the receive
+    /// thread before this thread runs again, and must find it counted.
+    fn send_with_echo(
+        &self,
+        writer: &mut MessageWriter,
+        stream: &mut TcpStream,
+        msg: &[u8],
+    ) -> io::Result<()> {
         self.echo_sent_ns.store(monotonic_ns(), Ordering::Release);
+        self.echoes_out.fetch_add(1, Ordering::AcqRel);
+        let r = writer.send(stream, msg, 0);
+        if r.is_err() {
+            let _ = self
+                .echoes_out
+                .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+                    Some(n.saturating_sub(1))
+                });
+        }
+        r
     }
 
     /// Note an echo's answer: one fewer out, and the round trip of the last
@@ -321,11 +337,8 @@ impl Sink for TcpSink {
             link.echo_known.load(Ordering::Acquire) && link.echoes_out.load(Ordering::Acquire) > 0;
         if waiting_echo || out_queue(stream.as_raw_fd()).is_some_and(|n| n > MAX_UNACKED) {
             self.held += 1;
-            if waiting_echo
-                && self.held % REPROBE_TICKS == 0
-                && self.writer.send(stream, b"< echo >", 0).is_ok()
-            {
-                link.echo_sent();
+            if waiting_echo && self.held % REPROBE_TICKS == 0 {
+                let _ = link.send_with_echo(&mut self.writer, stream, b"< echo >");
             }
             return Ok(busy);
         }
@@ -349,11 +362,8 @@ impl Sink for TcpSink {
         };
         let mut msg = encode_send(frame);
         msg.push_str("< echo >");
-        match self.writer.send(stream, msg.as_bytes(), 0) {
-            Ok(()) => {
-                link.echo_sent();
-                Ok(Written::Yes)
-            }
+        match link.send_with_echo(&mut self.writer, stream, msg.as_bytes()) {
+            Ok(()) => Ok(Written::Yes),
             Err(e) if e.kind() == io::ErrorKind::WouldBlock => Ok(Written::Dropped),
             Err(e) => {
                 drop(guard);
@@ -394,9 +404,7 @@ impl Sink for TcpSink {
             return;
         };
         if let Ok(Some(stream)) = self.stream(&mut guard) {
-            if self.writer.send(stream, b"< echo >", 0).is_ok() {
-                link.echo_sent();
-            }
+            let _ = link.send_with_echo(&mut self.writer, stream, b"< echo >");
         }
     }
 

@@ -1,0 +1,287 @@
+//! Physical plausibility of the received signals, beyond each signal's DBC
+//! range (`codec::Message::implausible`):
+//!
+//! * **Rate of change.** A value may move from the last one accepted for
+//!   its message by at most its signal's `max_rate` times the time between
+//!   the two (the longer of the arrival times' difference and the counter
+//!   steps times the message's cycle, so a late or bunched arrival never
+//!   makes a sound frame implausible), plus two steps of its resolution. A
+//!   speed alternating 12 <-> 85 m/s every 20 ms (3,650 m/s^2) is refused
+//!   (`test_i4_a_speed_jumping_12_85_every_frame_is_never_believed`).
+//! * **Wheel speeds against the vehicle speed.** A wheel that brakes only
+//!   (its actuator's `max_nm` is 0) cannot turn faster than the road under
+//!   it: its circumferential speed `|omega| R` may exceed the vehicle's
+//!   speed at that wheel, `|v_x| + |r| T/2 + (|v_y| + |r| a) |delta|`, by at
+//!   most `tolerance_mps + tolerance_rel |v_x|`. A driven wheel can spin and
+//!   any wheel can lock, so no other bound holds; a vehicle speed reported
+//!   too high is caught by its rate of change only (`docs/bus-safety.md`).
+//!
+//! The defaults are the vehicle's: rates from its limits (`vehicle.toml`,
+//! `[rx_max_rate]`), geometry from `ampc_jax.vehicle.params.VehicleParams`
+//! (`[rx_wheels]`); both are configurable and validated by name.
+
+use crate::codec::{Message, N_RX, RX_MESSAGES};
+
+/// Names of the rate-checked signals, per received message, in payload order.
+pub fn signal_names(m: usize) -> Vec<&'static str> {
+    RX_MESSAGES
+        .get(m)
+        .map(|msg| msg.signals.iter().skip(2).map(|s| s.name).collect())
+        .unwrap_or_default()
+}
+
+/// The plausibility settings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Plausibility {
+    /// Largest rate of change per received signal, per second (`RX_MESSAGES`
+    /// order, payload signals in DBC order; unused slots 0).
+    pub max_rate: [[f64; 4]; N_RX],
+    /// Effective wheel radius, m.
+    pub wheel_radius_m: f64,
+    /// Track width, m.
+    pub track_m: f64,
+    /// Centre of gravity to front axle, m.
+    pub cg_to_front_m: f64,
+    /// Absolute allowance of a brake-only wheel over the vehicle's speed, m/s.
+    pub tolerance_mps: f64,
+    /// Allowance relative to the vehicle's speed (tyre radius, slip).
+    pub tolerance_rel: f64,
+}
+
+/// Largest rates of change, per signal: `(name, unit/s, reason)`. The
+/// reasons are the vehicle's limits (`docs/bus-safety.md` lists them).
+pub const DEFAULT_RATES: [(&str, f64); 13] = [
+    // speed: no acceleration beyond the IMU's 20 m/s^2 range
+    ("LongSpeed", 20.0),
+    // dv_y/dt = a_y - r v_x: 20 m/s^2 plus 1 rad/s at 30 m/s
+    ("LatSpeed", 50.0),
+    // yaw acceleration: all four tyres' lateral force at mu = 2 on the
+    // axles' lever arms over I_z, with margin
+    ("YawRate", 20.0),
+    // a wheel: (2000 Nm + mu F_z R) / I_w with mu = 2 and half the
+    // vehicle's weight on it (6,100 rad/s^2), with margin
+    ("WheelSpeedFL", 8000.0),
+    ("WheelSpeedFR", 8000.0),
+    ("WheelSpeedRL", 8000.0),
+    ("WheelSpeedRR", 8000.0),
+    // a driver's fastest road-wheel steering, with margin
+    ("SteeringAngle", 3.0),
+    // jerk: the full IMU range in 40 ms
+    ("LongAccel", 1000.0),
+    ("LatAccel", 1000.0),
+    // the pedal map's full range in 0.3 s
+    ("DriverTorque", 50000.0),
+    // set speed and friction estimate: at most a step a frame that a
+    // human or an estimator makes (resume to 90 m/s takes 2 s)
+    ("SetSpeed", 50.0),
+    ("RoadFriction", 25.0),
+];
+
+impl Default for Plausibility {
+    /// The shipped `vehicle.toml` (a Rust test keeps the two equal).
+    fn default() -> Self {
+        let mut max_rate = [[0.0; 4]; N_RX];
+        for (m, rates) in max_rate.iter_mut().enumerate() {
+            for (slot, name) in rates.iter_mut().zip(signal_names(m)) {
+                *slot = DEFAULT_RATES
+                    .iter()
+                    .find(|(n, _)| *n == name)
+                    .map_or(0.0, |(_, r)| *r);
+            }
+        }
+        Plausibility {
+            max_rate,
+            wheel_radius_m: 0.351,
+            track_m: 1.66,
+            cg_to_front_m: 1.42,
+            tolerance_mps: 0.5,
+            tolerance_rel: 0.05,
+        }
+    }
+}
+
+/// Bounds of each setting: `(name, lo, hi)`.
+const GEOMETRY: [(&str, f64, f64); 5] = [
+    ("rx_wheels.radius_m", 0.1, 2.0),
+    ("rx_wheels.track_m", 0.3, 5.0),
+    ("rx_wheels.cg_to_front_m", 0.0, 10.0),
+    ("rx_wheels.tolerance_mps", 0.0, 20.0),
+    ("rx_wheels.tolerance_rel", 0.0, 1.0),
+];
+
+/// Largest rate accepted for any signal, per second.
+pub const MAX_RATE: f64 = 1e7;
+
+impl Plausibility {
+    /// The rate slot of signal `name`, if it is a received payload signal.
+    pub fn rate_mut(&mut self, name: &str) -> Option<&mut f64> {
+        let (m, i) =
+            (0..N_RX).find_map(|m| Some((m, signal_names(m).iter().position(|n| *n == name)?)))?;
+        self.max_rate.get_mut(m)?.get_mut(i)
+    }
+
+    /// The geometry slot of `rx_wheels.KEY`.
+    pub fn geometry_mut(&mut self, key: &str) -> Option<&mut f64> {
+        match key {
+            "radius_m" => Some(&mut self.wheel_radius_m),
+            "track_m" => Some(&mut self.track_m),
+            "cg_to_front_m" => Some(&mut self.cg_to_front_m),
+            "tolerance_mps" => Some(&mut self.tolerance_mps),
+            "tolerance_rel" => Some(&mut self.tolerance_rel),
+            _ => None,
+        }
+    }
+
+    /// Check every setting; the error names it.
+    pub fn validate(&self) -> std::result::Result<(), String> {
+        for (m, rates) in self.max_rate.iter().enumerate() {
+            for (name, r) in signal_names(m).iter().zip(rates) {
+                if !(r.is_finite() && *r > 0.0 && *r <= MAX_RATE) {
+                    return Err(format!(
+                        "rx_max_rate.{name} = {r} must be in (0, {MAX_RATE}] per second"
+                    ));
+                }
+            }
+        }
+        let vals = [
+            self.wheel_radius_m,
+            self.track_m,
+            self.cg_to_front_m,
+            self.tolerance_mps,
+            self.tolerance_rel,
+        ];
+        for ((name, lo, hi), v) in GEOMETRY.iter().zip(vals) {
+            if !(v.is_finite() && v >= *lo && v <= *hi) {
+                return Err(format!("{name} = {v} must be in [{lo}, {hi}]"));
+            }
+        }
+        Ok(())
+    }
+
+    /// The first signal of message `m` whose change from `prev` over `dt_s`
+    /// is faster than its rate (plus two steps of its resolution).
+    pub fn rate_violation(
+        &self,
+        m: usize,
+        msg: &Message,
+        prev: &[f64; 4],
+        new: &[f64; 4],
+        dt_s: f64,
+    ) -> Option<(&'static str, f64, f64)> {
+        let rates = self.max_rate.get(m)?;
+        msg.signals
+            .iter()
+            .skip(2)
+            .zip(rates)
+            .zip(prev.iter().zip(new))
+            .find_map(|((sig, rate), (a, b))| {
+                let allowed = rate * dt_s + 2.0 * sig.factor;
+                ((b - a).abs() > allowed).then_some((sig.name, *a, *b))
+            })
+    }
+
+    /// The first brake-only wheel (`undriven`) that turns faster than the
+    /// vehicle's speed at it allows: `(wheel index, its speed, the bound)`,
+    /// both in m/s. `motion` is (v_x, v_y, yaw rate), `steer` the road-wheel
+    /// angle (1 rad, the DBC's bound, when unknown).
+    pub fn wheel_violation(
+        &self,
+        motion: [f64; 3],
+        wheels: &[f64; 4],
+        steer: Option<f64>,
+        undriven: [bool; 4],
+    ) -> Option<(usize, f64, f64)> {
+        let [vx, vy, r] = motion;
+        let delta = steer.map_or(1.0, f64::abs).min(1.0);
+        let bound = vx.abs()
+            + r.abs() * self.track_m / 2.0
+            + (vy.abs() + r.abs() * self.cg_to_front_m) * delta
+            + self.tolerance_mps
+            + self.tolerance_rel * vx.abs();
+        wheels
+            .iter()
+            .zip(undriven)
+            .enumerate()
+            .find_map(|(i, (w, free))| {
+                let v = w.abs() * self.wheel_radius_m;
+                (free && v > bound).then_some((i, v, bound))
+            })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::codec::{VEHICLE_MOTION, WHEEL_SPEEDS};
+
+    #[test]
+    fn every_received_signal_has_a_default_rate() {
+        let p = Plausibility::default();
+        p.validate().unwrap();
+        assert_eq!(p.max_rate[0], [20.0, 50.0, 20.0, 0.0]);
+        assert_eq!(p.max_rate[1], [8000.0; 4]);
+    }
+
+    #[test]
+    fn rate_of_change_over_the_time_between_frames() {
+        let p = Plausibility::default();
+        let a = [12.0, 0.0, 0.0, 0.0];
+        // 73 m/s in 20 ms: no
+        let v = p.rate_violation(0, &VEHICLE_MOTION, &a, &[85.0, 0.0, 0.0, 0.0], 0.02);
+        assert_eq!(v.map(|x| x.0), Some("LongSpeed"));
+        // 0.4 m/s in 20 ms (20 m/s^2) plus two resolution steps: yes
+        assert!(p
+            .rate_violation(0, &VEHICLE_MOTION, &a, &[12.42, 0.0, 0.0, 0.0], 0.02)
+            .is_none());
+        // the same jump after 4 s: yes
+        assert!(p
+            .rate_violation(0, &VEHICLE_MOTION, &a, &[85.0, 0.0, 0.0, 0.0], 4.0)
+            .is_none());
+        assert!(p
+            .rate_violation(1, &WHEEL_SPEEDS, &[0.0; 4], &[100.0; 4], 0.02)
+            .is_none());
+    }
+
+    #[test]
+    fn a_brake_only_wheel_faster_than_the_vehicle_is_inconsistent() {
+        let p = Plausibility::default();
+        let free = [true, true, false, false];
+        let at = |v: f64| v / 0.351;
+        // straight at 12 m/s: the front wheels at 12 m/s, the rear spinning at 40
+        let w = [at(12.0), at(12.0), at(40.0), at(40.0)];
+        assert!(p
+            .wheel_violation([12.0, 0.0, 0.0], &w, Some(0.0), free)
+            .is_none());
+        // a front wheel at 40 m/s while the vehicle makes 12
+        let w = [at(40.0), at(12.0), at(12.0), at(12.0)];
+        let v = p
+            .wheel_violation([12.0, 0.0, 0.0], &w, Some(0.0), free)
+            .unwrap();
+        assert_eq!(v.0, 0);
+        // locked wheels are physical
+        assert!(p
+            .wheel_violation([30.0, 0.0, 0.0], &[0.0; 4], Some(0.0), free)
+            .is_none());
+        // the outer front wheel in a turn: v + r T/2
+        let w = [at(20.0 + 0.8), at(20.0), at(20.0), at(20.0)];
+        assert!(p
+            .wheel_violation([20.0, 0.5, 1.0], &w, Some(0.1), free)
+            .is_none());
+        // reversing
+        let w = [at(-5.0), at(-5.0), at(-5.0), at(-5.0)];
+        assert!(p
+            .wheel_violation([-5.0, 0.0, 0.0], &w, None, free)
+            .is_none());
+    }
+
+    #[test]
+    fn settings_are_validated_by_name() {
+        let mut p = Plausibility::default();
+        *p.rate_mut("YawRate").unwrap() = -1.0;
+        assert!(p.validate().unwrap_err().contains("rx_max_rate.YawRate"));
+        let mut p = Plausibility::default();
+        *p.geometry_mut("radius_m").unwrap() = 5.0;
+        assert!(p.validate().unwrap_err().contains("rx_wheels.radius_m"));
+        assert!(Plausibility::default().rate_mut("Nope").is_none());
+    }
+}
