@@ -24,6 +24,7 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+from jax import monitoring
 
 from ampc_jax.cli import main
 from ampc_jax.problem import Problem, ProblemError
@@ -138,8 +139,26 @@ def _one_line(msg: str) -> None:
     assert msg and "\n" not in msg.strip() and "Traceback" not in msg, msg[:500]
 
 
+_COMPILES: list[str] = []
+
+
+def _count_compiles(name: str, secs: float, **kwargs: Any) -> None:
+    if name.endswith("backend_compile_duration"):
+        _COMPILES.append(name)
+
+
+@pytest.fixture(autouse=True)
+def _compile_events():
+    """XLA compilations are counted while a test runs (JAX's monitoring events)."""
+    monitoring.register_event_duration_secs_listener(_count_compiles)
+    yield
+    monitoring.unregister_event_duration_listener(_count_compiles)
+
+
 def _cli(capsys, argv: list[str], prefix: str) -> None:
+    _COMPILES.clear()
     code = main(argv)
+    assert not _COMPILES, f"a refused input reached {len(_COMPILES)} XLA compilation(s): {argv}"
     err = capsys.readouterr().err
     assert code == 2, err[-2000:]
     lines = err.strip().splitlines()
