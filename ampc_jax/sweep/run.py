@@ -67,6 +67,12 @@ bar moves after each; reason: a chunk of 256 cases x 13 points was one call,
 so the bar moved once per chunk (several seconds to minutes), and the memory
 of a call is bounded whatever ``--chunk`` is."""
 
+LOOP_SUB_PAIRS = 32
+"""Closed-loop pairs per device in one call: each is a whole manoeuvre (320
+control steps for the cruise lane change), and the runs go 8 pairs at a time inside the call
+(:func:`~ampc_jax.sweep.loops.loop_pairs`), so small calls cost nothing and
+keep the bar moving."""
+
 
 def rho_grid(text: str) -> tuple[float, ...]:
     """A rho-scale grid from ``LO:HI:N`` (N points, geometric) or ``a,b,c``; ValueError otherwise.
@@ -277,10 +283,12 @@ def _layout(spec: SweepSpec, n_dev: int) -> tuple[int, int]:
     return chunk, -(-spec.cases // chunk)
 
 
-def _sub_cases(chunk: int, points: int, n_dev: int) -> int:
-    """Cases per call of the program: about :data:`SUB_PAIRS` pairs per device, at
-    least one case per device, splitting the chunk into equal calls."""
-    per_call = max(1, SUB_PAIRS // points) * n_dev
+def _sub_cases(chunk: int, points: int, n_dev: int, kind: str = "step") -> int:
+    """Cases per call of the program: about :data:`SUB_PAIRS` pairs per device
+    (:data:`LOOP_SUB_PAIRS` for closed loops), at least one case per device,
+    splitting the chunk into equal calls."""
+    pairs = LOOP_SUB_PAIRS if kind == "loop" else SUB_PAIRS
+    per_call = max(1, pairs // points) * n_dev
     calls = -(-chunk // per_call)
     sub = -(-chunk // calls)
     return -(-sub // n_dev) * n_dev
@@ -313,7 +321,7 @@ def check_memory(
         cases=spec.cases,
         points=P,
         chunk=chunk,
-        call_cases=_sub_cases(chunk, P, n_dev),
+        call_cases=_sub_cases(chunk, P, n_dev, kind),
         kind=kind,
         case_bytes=case_bytes,
         devs=devs,
@@ -353,7 +361,7 @@ def run_sweep(
     check_out(out, spec, n_dev)
     chunk, n_chunks = _layout(spec, n_dev)
     P = len(spec.rho)
-    sub = _sub_cases(chunk, P, n_dev)
+    sub = _sub_cases(chunk, P, n_dev, fam.kind)
     options = _sample_options(spec, fam)
     check_memory(spec, fam.kind, _case_bytes(spec, fam, options), devs)
     (out / "chunks").mkdir(parents=True, exist_ok=True)
