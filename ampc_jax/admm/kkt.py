@@ -24,8 +24,11 @@ only applies the factors. Three strategies behind one interface
   step's inputs (Abar_j = I (x) A_in,j).
 
 Each strategy says whether it needs the condensed form (``condensed``: Y_u,j
-built by :func:`~.costs.padded_costs`) and how eq.opt_ro applies H_j^-1
-(``hinv``: ``"dense"``, ``"woodbury"`` or ``"riccati"``, :func:`~.rho.eq_opt_ro`).
+built by :func:`~.costs.padded_costs`) and the formed H_j (``forms_H``), and
+makes the local Hessian in its own form (``hessian``: a
+:class:`~.hessian.DenseHessian`, :class:`~.hessian.WoodburyHessian` or
+:class:`~.hessian.RiccatiHessian`), which eq.opt_ro's power iteration and the
+duality gap apply and invert.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ import jax.numpy as jnp
 from ..problem.topology import Topology
 from . import riccati
 from .costs import PaddedCosts
+from .hessian import dense_hessian, riccati_hessian, woodbury_hessian
 from .layout import padded_layout
 from .linalg import block_diag, spd_inverse_dense, woodbury_inverse, woodbury_parts
 
@@ -54,7 +58,11 @@ class DenseKKT:
     name: str = "dense"
     woodbury: bool = False  # H_j^-1 for eq.opt_ro: from the formed H_j
     condensed: bool = True
-    hinv: str = "dense"
+    forms_H: bool = True
+
+    def hessian(self, c: PaddedCosts, topology: Topology) -> Any:
+        """H_j formed and inverted (:class:`~.hessian.DenseHessian`)."""
+        return dense_hessian(c, topology)
 
     def factor(self, c: PaddedCosts, rho_AtA: Any, horizon: int) -> Any:
         """(J, n, n) K_j^-1 from the costs (H formed) and the per-step rho_j A_in,j'A_in,j."""
@@ -76,7 +84,11 @@ class WoodburyKKT:
     factored: bool = True
     woodbury: bool = True  # H_j^-1 for eq.opt_ro: by the Woodbury identity too
     condensed: bool = True
-    hinv: str = "woodbury"
+    forms_H: bool = False
+
+    def hessian(self, c: PaddedCosts, topology: Topology) -> Any:
+        """H_j in the Woodbury form (:class:`~.hessian.WoodburyHessian`)."""
+        return woodbury_hessian(c, topology)
 
     @property
     def name(self) -> str:
@@ -112,7 +124,11 @@ class RiccatiKKT:
     name: str = "riccati"
     woodbury: bool = False
     condensed: bool = False
-    hinv: str = "riccati"
+    forms_H: bool = False
+
+    def hessian(self, c: PaddedCosts, topology: Topology) -> Any:
+        """H_j by sweeps of the model (:class:`~.hessian.RiccatiHessian`)."""
+        return riccati_hessian(c, topology)
 
     def factor(self, c: PaddedCosts, rho_AtA: Any, horizon: int) -> Any:
         return riccati.factor(c.A, c.Bu, c.Qx, c.BH + rho_AtA, horizon)

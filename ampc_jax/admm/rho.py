@@ -1,17 +1,26 @@
 """eq.opt_ro: the penalty rho_j* of each objective, exactly or by power iteration.
 
 rho_j* = 1 / sqrt(lambda_1 lambda_n) of Abar_j H_j^-1 Abar_j' (lambda_1, lambda_n
-the smallest non-zero and the largest eigenvalue). :func:`eq_opt_ro` gives it
-for every objective of the padded layout: by default estimated by power
-iteration on the pencil (H_j, Abar_j'Abar_j) (:func:`power_rho`,
-:func:`power_rho_woodbury`), or exactly (:func:`optimal_rho`, an
-eigendecomposition, several times slower on XLA:CPU). Objectives whose rows
-A_in,j are column-rank deficient always use the exact form with the known rank.
+the smallest non-zero and the largest eigenvalue), for every objective of the
+padded layout: estimated by power iteration on the pencil (H_j, Abar_j'Abar_j)
+(:func:`eq_opt_ro_power`; H_j applied as the KKT strategy holds it,
+:mod:`~.hessian`), or exactly (:func:`eq_opt_ro_exact`, an eigendecomposition,
+several times slower on XLA:CPU). Objectives whose rows A_in,j are
+column-rank deficient always use the exact form with the known rank.
+
+How a formulation picks rho_j is a strategy chosen by name at construction
+(``rho_method``; :func:`select_rho`): :class:`PowerRho`, :class:`ExactRho`
+(a factor ``params.rho`` on the automatic rho_j*) or :class:`GivenRho`
+(``params.rho`` itself). The formulation gives the automatic rho_j* as a
+:class:`RhoEstimates` (eq.opt_ro for Local Explicit, Ghadimi's
+sqrt(lambda_min lambda_max) of H_j for Formulations 1 and 2).
 """
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -19,112 +28,168 @@ import jax.scipy.linalg as jsl
 import numpy as np
 
 from ..problem.topology import Topology
-from . import riccati
 from .costs import PaddedCosts, unpad_matrix
 from .layout import padded_layout
-from .linalg import apply_blocks, eye_like, spd_inverse, spd_inverse_dense, woodbury_parts
+from .linalg import apply_blocks, eye_like, spd_inverse
 
 __all__ = [
-    "RHO_METHODS",
-    "eq_opt_ro",
+    "RHO_RULES",
+    "ExactRho",
+    "GivenRho",
+    "PowerRho",
+    "RhoEstimates",
+    "eq_opt_ro_exact",
+    "eq_opt_ro_power",
     "extreme_eigenvalues",
     "optimal_rho",
     "power_rho",
     "power_rho_riccati",
     "power_rho_woodbury",
     "scaled_hessian",
+    "select_rho",
 ]
 
-RHO_METHODS = ("power", "eigh")
-"""How eq.opt_ro's extreme eigenvalues are found: power iteration or exactly."""
+
+# -- how rho_j is chosen: strategies behind one interface, chosen by name ------------
+class RhoEstimates(NamedTuple):
+    """A formulation's automatic rho_j*, two ways: ``estimate()`` (power iteration)
+    and ``exact()`` (an eigendecomposition; None where the formulation has none)."""
+
+    estimate: Callable[[], Any]
+    exact: Callable[[], Any] | None = None
 
 
-def eq_opt_ro(
+@dataclass(frozen=True)
+class PowerRho:
+    """rho_j = ``params.rho[j]`` times the automatic rho_j*, estimated by power iteration."""
+
+    name: str = "power"
+    needs_H: bool = False  # the formed H_j (only the exact eigendecomposition needs it)
+
+    def rho(self, factor: Any, rho_star: RhoEstimates) -> Any:
+        return factor * rho_star.estimate()
+
+
+@dataclass(frozen=True)
+class ExactRho:
+    """rho_j = ``params.rho[j]`` times the automatic rho_j*, by an eigendecomposition
+    (several times slower on XLA:CPU; the reference the estimate is tested against)."""
+
+    name: str = "eigh"
+    needs_H: bool = True
+
+    def rho(self, factor: Any, rho_star: RhoEstimates) -> Any:
+        return factor * rho_star.exact()
+
+
+@dataclass(frozen=True)
+class GivenRho:
+    """rho_j = ``params.rho[j]`` itself (no rho_j*; for a singular H_j, where
+    eq.opt_ro is undefined)."""
+
+    name: str = "given"
+    needs_H: bool = False
+
+    def rho(self, factor: Any, rho_star: RhoEstimates) -> Any:
+        return factor
+
+
+RHO_RULES: dict[str, Any] = {r.name: r for r in (PowerRho(), ExactRho(), GivenRho())}
+"""``rho_method`` name -> strategy."""
+
+
+def select_rho(name: str, allowed: tuple[str, ...] = tuple(RHO_RULES)) -> Any:
+    """The rho strategy ``name`` among ``allowed`` (a formulation's choices), or a
+    ValueError naming ``rho_method``."""
+    if name not in allowed:
+        raise ValueError(f"rho_method: expected one of {allowed}, got {name!r}")
+    return RHO_RULES[name]
+
+
+# -- eq.opt_ro ------------------------------------------------------------------------
+def _pencil(topology: Topology, AtA: Any, dtype: Any) -> tuple[Any, Any]:
+    """(LamB, mask): the per-step block of Lambda = Abar'Abar with identities on
+    padded inputs and rank-deficient objectives, and the (J, n) real-entry mask."""
+    lay = padded_layout(topology)
+    U = lay.cols.shape[1]
+    N = topology.horizon
+    full = np.asarray(lay.full)
+    # Padded inputs: identity in A_in'A_in and in H, decoupled from the real
+    # entries. Rank-deficient objectives get an identity here and the exact
+    # form (:func:`_deficient`).
+    eyeU = jnp.asarray(np.eye(U)[None] * (1.0 - lay.umask)[:, :, None], dtype)
+    fixed = jnp.asarray((~full)[:, None, None] * np.eye(U), dtype)
+    LamB = AtA * jnp.asarray(full[:, None, None], dtype) + eyeU + fixed
+    mask = jnp.asarray(np.tile(lay.umask, (1, N)), dtype)
+    return LamB, mask
+
+
+def _with_deficient(
+    topology: Topology, c: PaddedCosts, Ain: Any, own_rows: tuple, rho_full: Any
+) -> Any:
+    """(J,) rho_j*: ``rho_full`` for objectives with full column rank rows, the
+    exact form with the known rank for the others (``c.H`` formed)."""
+    lay = padded_layout(topology)
+    U = lay.cols.shape[1]
+    N = topology.horizon
+    out = []
+    for j, full in enumerate(lay.full):
+        if full:
+            out.append(rho_full[j])
+        else:
+            u = lay.u_sizes[j]
+            Hj = unpad_matrix(c.H[j], u, U, N)
+            Aj = Ain[j][own_rows[j], :u]
+            out.append(optimal_rho(Hj, Aj, N, topology.group_rank[j]))
+    return jnp.stack(out)
+
+
+def eq_opt_ro_power(
     topology: Topology,
     c: PaddedCosts,
     Ain: Any,
     AtA: Any,
     own_rows: tuple,
-    *,
-    method: str = "power",
+    hessian: Any,
     iterations: int = 8,
-    hinv: str = "dense",
 ) -> Any:
-    """(J,) eq.opt_ro's rho_j* for every objective of the padded layout.
+    """(J,) eq.opt_ro's rho_j*, its extreme eigenvalues by ``iterations`` steps of
+    power iteration on the pencil (H_j, Abar_j'Abar_j), H_j and H_j^-1 applied
+    by ``hessian`` (:mod:`~.hessian`: dense, Woodbury or Riccati).
 
-    Parameters
-    ----------
-    c : the padded costs (``c.H`` formed unless ``hinv`` is not "dense" and the power method).
-    Ain : (J, R, U) per-step rows A_in,j in the layout; AtA : (J, U, U) A_in,j'A_in,j.
-    own_rows : per objective, the positions of its own rows among the R (for the
-        exact rank-deficient form).
-    method : ``"power"`` or ``"eigh"`` (:data:`RHO_METHODS`).
-    iterations : power-iteration steps.
-    hinv : how the power iteration applies H_j^-1: ``"dense"`` (formed),
-        ``"woodbury"`` (the Woodbury identity, no n x n matrix formed) or
-        ``"riccati"`` (the Riccati recursion over the model, :func:`power_rho_riccati`;
-        ``c`` then needs no condensed form).
+    c : the padded costs; Ain : (J, R, U) per-step rows A_in,j in the layout;
+    AtA : (J, U, U) A_in,j'A_in,j; own_rows : per objective, the positions of
+    its own rows among the R (for the exact rank-deficient form).
     """
-    T = topology
-    lay = padded_layout(T)
-    J, U = lay.cols.shape
-    N = T.horizon
-    H = c.H
+    if not any(padded_layout(topology).full):
+        return _with_deficient(topology, c, Ain, own_rows, None)
+    LamB, mask = _pencil(topology, AtA, c.E.dtype)
+    return _with_deficient(topology, c, Ain, own_rows, hessian.pencil_rho(LamB, mask, iterations))
+
+
+def eq_opt_ro_exact(topology: Topology, c: PaddedCosts, Ain: Any, AtA: Any, own_rows: tuple) -> Any:
+    """(J,) eq.opt_ro's rho_j*, exactly: the eigenvalues of G = L^-1 H L^-T
+    (``c.H`` formed; see :func:`optimal_rho`)."""
+    lay = padded_layout(topology)
+    if not any(lay.full):
+        return _with_deficient(topology, c, Ain, own_rows, None)
+    N = topology.horizon
+    U = lay.cols.shape[1]
     dt = c.E.dtype
-    full = np.asarray(lay.full)
-    out = [None] * J
-    if full.any():
-        # Padded inputs: identity in A_in'A_in and in H, decoupled from the real
-        # entries. Rank-deficient objectives get an identity here and the exact
-        # form below.
-        eyeU = jnp.asarray(np.eye(U)[None] * (1.0 - lay.umask)[:, :, None], dt)
-        fixed = jnp.asarray((~full)[:, None, None] * np.eye(U), dt)
-        LamB = AtA * jnp.asarray(full[:, None, None], dt) + eyeU + fixed
-        mask = jnp.asarray(np.tile(lay.umask, (1, N)), dt)
-        if method == "power":
-            # H may be singular (R_j = 0): a shift of eps * mean(diag H) keeps
-            # its inverse finite and mu_min at about the eps * mu_max floor
-            nj = jnp.asarray([N * u for u in lay.u_sizes], dt)
-            um = jnp.asarray(lay.umask, dt)
-            if hinv == "riccati":
-                gram = riccati.trace_gram(c.A, c.Bu, c.Qx, N)
-            else:
-                gram = jnp.sum(c.Yu * (c.Q2 @ c.Yu), axis=(1, 2))
-            tr = gram + N * jnp.einsum("jaa,ja->j", c.BH, um)
-            delta = (jnp.finfo(dt).eps * tr / nj)[:, None, None]
-            if hinv == "riccati":
-                BHd = c.BH + delta * jnp.eye(U, dtype=dt)
-                rho_full = power_rho_riccati(c, BHd, LamB, mask, iterations, N)
-            elif hinv == "woodbury":
-                BHd = c.BH + delta * jnp.eye(U, dtype=dt)
-                rho_full = power_rho_woodbury(c, BHd, LamB, mask, iterations, N)
-            else:
-                Hinv = spd_inverse_dense(H + delta * jnp.eye(N * U, dtype=dt))
-                rho_full = power_rho(H, Hinv, LamB, mask, iterations)
-        else:
-            # exact: G = L^-1 H L^-T padded with the mean real eigenvalue
-            # (trace / n_j), which lies between the extreme ones and so leaves
-            # mu_min, mu_max unchanged
-            G = scaled_hessian(H, LamB, N)
-            G = 0.5 * (G + jnp.swapaxes(G, 1, 2))
-            nj = jnp.asarray([N * u for u in lay.u_sizes], dt)
-            mean = jnp.einsum("jaa->j", G * mask[:, :, None]) / nj
-            G = G * (mask[:, :, None] * mask[:, None, :]) + (1 - mask)[:, :, None] * (
-                mean[:, None, None] * jnp.eye(N * U, dtype=dt)
-            )
-            mu = jnp.linalg.eigvalsh(G)
-            eps = jnp.finfo(dt).eps
-            rho_full = jnp.sqrt(jnp.maximum(mu[:, 0], eps * mu[:, -1]) * mu[:, -1])
-        for j in range(J):
-            if full[j]:
-                out[j] = rho_full[j]
-    for j in range(J):
-        if not full[j]:
-            u = lay.u_sizes[j]
-            Hj = unpad_matrix(H[j], u, U, N)
-            Aj = Ain[j][own_rows[j], :u]
-            out[j] = optimal_rho(Hj, Aj, N, T.group_rank[j])
-    return jnp.stack(out)
+    LamB, mask = _pencil(topology, AtA, dt)
+    # G = L^-1 H L^-T padded with the mean real eigenvalue (trace / n_j), which
+    # lies between the extreme ones and so leaves mu_min, mu_max unchanged
+    G = scaled_hessian(c.H, LamB, N)
+    G = 0.5 * (G + jnp.swapaxes(G, 1, 2))
+    nj = jnp.asarray([N * u for u in lay.u_sizes], dt)
+    mean = jnp.einsum("jaa->j", G * mask[:, :, None]) / nj
+    G = G * (mask[:, :, None] * mask[:, None, :]) + (1 - mask)[:, :, None] * (
+        mean[:, None, None] * jnp.eye(N * U, dtype=dt)
+    )
+    mu = jnp.linalg.eigvalsh(G)
+    eps = jnp.finfo(dt).eps
+    rho_full = jnp.sqrt(jnp.maximum(mu[:, 0], eps * mu[:, -1]) * mu[:, -1])
+    return _with_deficient(topology, c, Ain, own_rows, rho_full)
 
 
 def optimal_rho(H: Any, Ain: Any, horizon: int, rank: int | None = None) -> Any:
@@ -232,13 +297,11 @@ def power_rho(H: Any, Hinv: Any, LamB: Any, mask: Any, iterations: int) -> Any:
     return rho_from_quotients(num / jnp.sum(v * apply_blocks(LamB, v), -1))
 
 
-def power_rho_woodbury(
-    c: PaddedCosts, BH: Any, LamB: Any, mask: Any, iterations: int, horizon: int
-) -> Any:
-    """:func:`power_rho` with H = Y_u' Q2 Y_u + I (x) BH and H^-1 from the Woodbury form.
+def power_rho_woodbury(hessian: Any, LamB: Any, mask: Any, iterations: int) -> Any:
+    """:func:`power_rho` with H = Y_u' Q2 Y_u + I (x) BH applied and inverted in
+    the Woodbury form (:class:`~.hessian.WoodburyHessian`).
 
-    No n x n matrix is formed or factorised: each iteration applies
-    (:func:`woodbury_parts`)::
+    No n x n matrix is formed or factorised: each iteration applies::
 
         Lambda^-1 H x = (I (x) Lambda_B^-1) [(I (x) BH) x + Y_u'(Q2 (Y_u x))]
         H^-1 Lambda x = (I (x) BH^-1) Lambda x - W'(P (W Lambda x))
@@ -248,55 +311,40 @@ def power_rho_woodbury(
     against 42 us per case batched over 32 cases, and 56 against 62 us for
     one problem (``bench/bench_local_explicit.py``).
     """
-    Binv, W, P = woodbury_parts(c.Yu, c.Qh, BH, horizon)
     Laminv = spd_inverse(LamB)
 
-    def lowrank(L: Any, Mid: Any, R: Any, x: Any) -> Any:
-        y = jnp.einsum("jsn,jpn->jps", R, x)
-        y = jnp.einsum("jst,jpt->jps", Mid, y)
-        return jnp.einsum("jsn,jps->jpn", L, y)
-
-    def Hx(x: Any) -> Any:
-        return apply_blocks(BH, x) + lowrank(c.Yu, c.Q2, c.Yu, x)
-
     def body(_: Any, v: Any) -> Any:
-        up = apply_blocks(Laminv, Hx(v[:, :1]))  # Lambda^-1 H v
-        lx = apply_blocks(LamB, v[:, 1:])
-        down = apply_blocks(Binv, lx) - lowrank(W, P, W, lx)  # H^-1 Lambda v
+        up = apply_blocks(Laminv, hessian.apply(v[:, :1]))  # Lambda^-1 H v
+        down = hessian.solve(apply_blocks(LamB, v[:, 1:]))  # H^-1 Lambda v
         v = jnp.concatenate([up, down], axis=1)
         return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
 
-    v = power_start(mask, c.Yu.dtype)
+    v = power_start(mask, LamB.dtype)
     v = jax.lax.fori_loop(0, iterations, body, v)
-    rq = jnp.sum(v * Hx(v), -1) / jnp.sum(v * apply_blocks(LamB, v), -1)
+    rq = jnp.sum(v * hessian.apply(v), -1) / jnp.sum(v * apply_blocks(LamB, v), -1)
     return rho_from_quotients(rq)
 
 
-def power_rho_riccati(
-    c: PaddedCosts, BH: Any, LamB: Any, mask: Any, iterations: int, horizon: int
-) -> Any:
-    """:func:`power_rho` with H_j and H_j^-1 applied by sweeps of the model (:mod:`~.riccati`).
+def power_rho_riccati(hessian: Any, LamB: Any, mask: Any, iterations: int) -> Any:
+    """:func:`power_rho` with H_j and H_j^-1 applied by sweeps of the model
+    (:class:`~.hessian.RiccatiHessian`).
 
     H x is a forward sweep from x_0 = 0 and an adjoint sweep back
     (:func:`~.riccati.hessian_apply`); H^-1 y the Riccati solve with the
     per-step block BH (no rho term). Neither Y_u,j nor any n x n matrix is
     formed: O(N_p (n_x^2 + n_x U)) per product.
     """
-    f = riccati.factor(c.A, c.Bu, c.Qx, BH, horizon)
     Laminv = spd_inverse(LamB)
 
-    def Hx(x: Any) -> Any:
-        return riccati.hessian_apply(c.A, c.Bu, c.Qx, BH, x)
-
     def body(_: Any, v: Any) -> Any:
-        up = apply_blocks(Laminv, Hx(v[:, :1]))  # Lambda^-1 H v
-        down = riccati.solve(f, apply_blocks(LamB, v[:, 1:]))  # H^-1 Lambda v
+        up = apply_blocks(Laminv, hessian.apply(v[:, :1]))  # Lambda^-1 H v
+        down = hessian.solve(apply_blocks(LamB, v[:, 1:]))  # H^-1 Lambda v
         v = jnp.concatenate([up, down], axis=1)
         return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
 
-    v = power_start(mask, c.E.dtype)
+    v = power_start(mask, LamB.dtype)
     v = jax.lax.fori_loop(0, iterations, body, v)
-    rq = jnp.sum(v * Hx(v), -1) / jnp.sum(v * apply_blocks(LamB, v), -1)
+    rq = jnp.sum(v * hessian.apply(v), -1) / jnp.sum(v * apply_blocks(LamB, v), -1)
     return rho_from_quotients(rq)
 
 

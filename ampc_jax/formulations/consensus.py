@@ -80,9 +80,10 @@ from ..admm.layout import padded_layout
 from ..admm.linalg import block_diag, spd_inverse_dense
 from ..admm.local_qp import InnerState, LocalQP, factor, inner_rho, iterate
 from ..admm.params import SolverParams, as_params
-from ..admm.rho import extreme_eigenvalues
+from ..admm.rho import RhoEstimates, extreme_eigenvalues, select_rho
 from ..admm.runners import check_iterations
 from ..admm.state import shift_horizon, warm_start
+from ..admm.stopping import select_dual_residual
 from ..problem.data import ProblemData
 from ..problem.errors import ProblemError
 from ..problem.topology import Topology
@@ -188,15 +189,8 @@ class ConsensusADMM(ADMMSolver):
         for name in ("max_iter", "inner_iterations", "rho_iterations"):
             object.__setattr__(self, name, check_iterations(getattr(self, name), name))
         object.__setattr__(self, "anderson", anderson_memory(self.anderson))
-        if self.rho_method not in CONSENSUS_RHO_METHODS:
-            raise ValueError(
-                f"rho_method: expected one of {CONSENSUS_RHO_METHODS}, got {self.rho_method!r}"
-            )
-        if self.dual_residual not in CONSENSUS_DUAL_RESIDUALS:
-            raise ValueError(
-                f"dual_residual: expected one of {CONSENSUS_DUAL_RESIDUALS}, "
-                f"got {self.dual_residual!r}"
-            )
+        select_rho(self.rho_method, CONSENSUS_RHO_METHODS)
+        select_dual_residual(self.dual_residual, CONSENSUS_DUAL_RESIDUALS)
         T = self.topology
         for i, m in enumerate(T.multiplicity):
             if m == 0:
@@ -211,6 +205,17 @@ class ConsensusADMM(ADMMSolver):
     def n_rho(self) -> int:
         """Number of rho_j (one per objective)."""
         return self.topology.n_objectives
+
+    @property
+    def rho_rule(self) -> Any:
+        """How rho_j is chosen (``rho_method`` resolved: :func:`~ampc_jax.admm.rho.select_rho`)."""
+        return select_rho(self.rho_method, CONSENSUS_RHO_METHODS)
+
+    @property
+    def dual_rule(self) -> Any:
+        """The tested dual residual (``dual_residual`` resolved:
+        :func:`~ampc_jax.admm.stopping.select_dual_residual`)."""
+        return select_dual_residual(self.dual_residual, CONSENSUS_DUAL_RESIDUALS)
 
     def _touched(self) -> np.ndarray:
         """(J, n_c) 1 where constraint row c involves an agent of S_j."""
@@ -247,7 +252,8 @@ class ConsensusADMM(ADMMSolver):
         delta = (jnp.finfo(dt).eps * tr)[:, None, None] * jnp.eye(n, dtype=dt)
         Hinv = spd_inverse_dense(c.H + delta)
         lam_min, lam_max = extreme_eigenvalues(c.H, Hinv, mask, self.rho_iterations)
-        rho = p.rho if self.rho_method == "given" else p.rho * jnp.sqrt(lam_min * lam_max)
+        # Ghadimi's optimal penalty for U_j - Z_j = 0, times params.rho (or given)
+        rho = self.rho_rule.rho(p.rho, RhoEstimates(lambda: jnp.sqrt(lam_min * lam_max)))
         Rj = 0.5 * (c.BH - jnp.asarray(np.eye(U)[None] * (1.0 - lay.umask)[:, :, None], dt))
         if self.center:  # Formulation 2: no input weights in the local cost
             H = c.H - block_diag(2.0 * Rj, N)
@@ -353,9 +359,7 @@ class ConsensusADMM(ADMMSolver):
         Zn = jnp.einsum("jun,kn->jku", Psel, Z)
         gamma = st.gamma + rho * (Ur - Zn)
         r = Uj - Zn
-        dz = Zn - Zj
-        if self.dual_residual == "paper":
-            dz = rho * dz
+        dz = self.dual_rule.dual(rho, Zn - Zj)
         primal = jnp.sum(r * r, axis=(1, 2)) + ip
         dual = jnp.sum(dz * dz, axis=(1, 2)) + idl
         return ConsensusState(Uj, Z, gamma, inner.s, inner.y, st.iteration + 1, primal, dual)

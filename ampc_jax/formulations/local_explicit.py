@@ -67,8 +67,9 @@ from ..admm.costs import padded_costs
 from ..admm.kkt import KKT, KKT_SOLVES, select_kkt
 from ..admm.layout import padded_layout
 from ..admm.params import SolverParams, as_params
-from ..admm.rho import eq_opt_ro
+from ..admm.rho import RhoEstimates, eq_opt_ro_exact, eq_opt_ro_power, select_rho
 from ..admm.state import ADMMState, cold_state, shift_state, warm_start
+from ..admm.stopping import select_dual_residual
 from ..problem.data import ProblemData
 from ..problem.topology import Topology
 from ..results import SolveResult, Status
@@ -195,12 +196,8 @@ class LocalExplicit(ADMMSolver):
         )
         if self.kkt not in KKT_SOLVES:
             raise ValueError(f"kkt: expected one of {KKT_SOLVES}, got {self.kkt!r}")
-        if self.rho_method not in RHO_METHODS:
-            raise ValueError(f"rho_method: expected one of {RHO_METHODS}, got {self.rho_method!r}")
-        if self.dual_residual not in DUAL_RESIDUALS:
-            raise ValueError(
-                f"dual_residual: expected one of {DUAL_RESIDUALS}, got {self.dual_residual!r}"
-            )
+        select_rho(self.rho_method, RHO_METHODS)
+        select_dual_residual(self.dual_residual, DUAL_RESIDUALS)
         select_kkt(self.topology, self.kkt)  # validates the choice for this topology
         self.topology.check_local_explicit()
 
@@ -214,6 +211,17 @@ class LocalExplicit(ADMMSolver):
     def kkt_solve(self) -> KKT:
         """The KKT solve strategy in use (``kkt`` resolved for this topology)."""
         return select_kkt(self.topology, self.kkt)
+
+    @property
+    def rho_rule(self) -> Any:
+        """How rho_j is chosen (``rho_method`` resolved: :func:`~ampc_jax.admm.rho.select_rho`)."""
+        return select_rho(self.rho_method, RHO_METHODS)
+
+    @property
+    def dual_rule(self) -> Any:
+        """The tested dual residual (``dual_residual`` resolved:
+        :func:`~ampc_jax.admm.stopping.select_dual_residual`)."""
+        return select_dual_residual(self.dual_residual, DUAL_RESIDUALS)
 
     def _own(self, j: int) -> np.ndarray:
         """Positions of objective j's own rows (``Topology.group_rows(j)`` order)
@@ -237,7 +245,7 @@ class LocalExplicit(ADMMSolver):
         dt = data.A.dtype
         p = as_params(self.params(dtype=dt) if params is None else params, J, dt)
         # the formed H_j: for the dense solve, the exact rho and rank-deficient rows
-        need_H = kkt.hinv == "dense" or self.rho_method == "eigh" or not all(lay.full)
+        need_H = kkt.forms_H or self.rho_rule.needs_H or not all(lay.full)
         c = padded_costs(T, data, with_H=need_H, condensed=kkt.condensed or need_H)
         # each objective's R rows (lay.rows; a padded index reads a zero row)
         Aix = jnp.pad(data.Ain, ((0, 1), (0, 1)))  # padded row / column index -> 0
@@ -245,21 +253,14 @@ class LocalExplicit(ADMMSolver):
         bx = jnp.pad(data.bin, ((0, 0), (0, 1)))
         b = jnp.moveaxis(bx[:, lay.rows], 1, 0)  # (J, N, R)
         AtA = jnp.einsum("jcu,jcv->juv", Ain, Ain)
-        if self.rho_method == "given":
-            rho = p.rho
-        else:
-            own = tuple(self._own(j) for j in range(J))
-            star = eq_opt_ro(
-                T,
-                c,
-                Ain,
-                AtA,
-                own,
-                method=self.rho_method,
-                iterations=self.rho_iterations,
-                hinv=kkt.hinv,
-            )
-            rho = star * p.rho
+        own = tuple(self._own(j) for j in range(J))
+        rho_star = RhoEstimates(
+            estimate=lambda: eq_opt_ro_power(
+                T, c, Ain, AtA, own, kkt.hessian(c, T), self.rho_iterations
+            ),
+            exact=lambda: eq_opt_ro_exact(T, c, Ain, AtA, own),
+        )
+        rho = self.rho_rule.rho(p.rho, rho_star)  # eq.opt_ro's rho_j* times params.rho
         # K_j = H_j + rho_j I (x) A_in,j'A_in,j, all objectives in one batched
         # factorisation; an iteration then applies it (a few matrix-vector products)
         Kinv = kkt.factor(c, rho[:, None, None] * AtA, N)
@@ -406,9 +407,7 @@ class LocalExplicit(ADMMSolver):
             Zs = Z
         r = mask(AU - setup.b + Zs)
         gamma = st.gamma + rho * mask(AUr - setup.b + Zs)  # eq.F3_multiplier
-        dz = mask(Zs - Z_old)
-        if self.dual_residual == "paper":
-            dz = rho * dz  # s_j = rho_j (Z_j - Z_j_prev), eq.Convergence
+        dz = self.dual_rule.dual(rho, mask(Zs - Z_old))  # eq.Convergence's s_j
         primal = jnp.sum(r * r, axis=(1, 2))
         dual = jnp.sum(dz * dz, axis=(1, 2))
         return ADMMState(Uf.reshape(J, N, U), Z, gamma, st.iteration + 1, primal, dual)

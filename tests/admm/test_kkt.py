@@ -71,3 +71,40 @@ def test_singular_r_falls_back_to_the_dense_factorisation():
     for kkt in ("woodbury", "woodbury_factored"):
         with pytest.raises(ValueError, match="kkt: .*singular for \\['a'\\]"):
             LocalExplicit(T, kkt=kkt)
+
+
+@pytest.mark.parametrize("kkt", ["dense", "woodbury", "riccati"])
+def test_each_strategy_holds_the_same_local_hessian(kkt):
+    """Each KKT strategy's Hessian operator (what eq.opt_ro's power iteration and
+    the duality gap use, in place of a string naming the form) applies H_j and
+    inverts it, against the formed H_j and numpy's solve."""
+    from ampc_jax.admm.costs import padded_costs
+
+    p = random_problem(7, 3, shared="both", horizon=4)
+    T, d = p.topology, p.data()
+    strategy = select_kkt(T, kkt)
+    c = padded_costs(T, d, with_H=True, condensed=True)
+    h = strategy.hessian(c, T)
+    x = jnp.asarray(np.random.default_rng(0).standard_normal((T.n_objectives, 2, c.H.shape[-1])))
+    H = np.asarray(c.H)
+    np.testing.assert_allclose(h.apply(x), np.einsum("jab,jpb->jpa", H, x), rtol=1e-10, atol=1e-10)
+    want = np.stack([np.linalg.solve(H[j], np.asarray(x[j]).T).T for j in range(len(H))])
+    np.testing.assert_allclose(h.solve(x), want, rtol=1e-8, atol=1e-10)
+    assert strategy.forms_H == (kkt == "dense")
+
+
+def test_strategies_are_chosen_by_name_at_construction():
+    from ampc_jax.admm.rho import ExactRho, GivenRho, PowerRho
+    from ampc_jax.admm.stopping import ChangeResidual, PaperResidual
+    from ampc_jax.formulations import FullyDistributed
+
+    T = random_problem(0, 2).topology
+    le = LocalExplicit(T, rho_method="eigh", dual_residual="paper")
+    assert isinstance(le.rho_rule, ExactRho) and isinstance(le.dual_rule, PaperResidual)
+    assert isinstance(LocalExplicit(T, rho_method="given").rho_rule, GivenRho)
+    fd = FullyDistributed(T)
+    assert isinstance(fd.rho_rule, PowerRho) and fd.dual_rule == ChangeResidual("change")
+    with pytest.raises(ValueError, match=r"rho_method: expected one of \('power', 'given'\)"):
+        FullyDistributed(T, rho_method="eigh")
+    with pytest.raises(ValueError, match="dual_residual: expected one of"):
+        LocalExplicit(T, dual_residual="change")
