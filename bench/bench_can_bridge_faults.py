@@ -1,31 +1,41 @@
-"""Fault-injection figures of can_bridge (issue 21's measurements, re-run).
+"""Fault-injection figures of can_bridge: issue 21's findings re-measured, and
+issue 29's (the bus under attack and faults).
 
-Each line re-measures one finding with the peers of tests/can_bridge
-(python-can's slcan interface over the pty, a socketcand server and an SLCAN
-adapter written for the tests, cantools + autosar-e2e):
+Every case runs a fresh bridge with an independent python-can peer (the
+``slcan`` interface on the pty, or the ``socketcand`` interface as a second
+client of a socketcand server that relays between its clients as one bus)
+that takes every torque frame in python-can's receive thread. Per fault:
 
-* stall: a peer stops reading for ``--stall`` s; frames it then finds within
-  20 ms of resuming (before: 107 after 5 s on the pty, 80 of 110 over 1 s old
-  on a serial adapter, 205 on socketcand), and frames dropped for their age;
-* sensors: share of ``latest_state()`` samples judged valid for a frozen
-  (repeating) sensor, a counter stepping by 3, two sources on one ID, 90 %
-  bad CRC (before: 93 %, 95 %, 97.5 %, 62 %), and for healthy sensors (the
-  control: near 100 %). Rule: every message the bridge receives is sent
-  each 20 ms, sound, and only VehicleMotion carries the fault; reason: the
-  state is valid only while all of them arrive sound, so a missing message
-  would make every case 0 % whatever the fault;
-* reconnect: a socketcand server killed and restarted after 0.5 s: time
-  until frames reach it again (before: none in 6 s);
-* flood: a non-reading peer flooding ``V`` for 5 s at 50 ms: ticks, largest
-  wake-up gap, lateness_max_ms, stop() time (before: 41 of 100 ticks,
-  450-500 ms gaps reported as 0.2-9.7 ms, stop 1.2-3.8 s);
-* watchdog: hold / safe / fault after 150 / 500 / 2000 ms, on the peer's
-  clock from the last command (before: 50-100 ms late).
+* ``framed``: the frames the bridge wrote (``tx_frames``);
+* ``stale``: frames older than one period when the peer got them (its
+  receive time against the bridge's candump log of write times, the same
+  clock), with the oldest one's age;
+* ``valid %``: ``latest_state()`` samples (every ms) judged valid;
+* ``intruder``: samples judged valid at an intruder's value.
+
+Targets: 0 stale, 0 intruder samples believed. The cases:
+
+* ``socketcand stall`` (issue 29 item 2): the server stops reading for
+  ``--stall`` s, ``--trials`` times right after answering the echo behind a
+  frame (between two ticks) and as many times at a random phase;
+* ``late open`` / ``reopen`` (item 1): the command held fresh at 1500 Nm, the
+  peer opens its channel 1 s late, or closes (``C``) and reopens it: the
+  first frame's rear torque and what ``safety_state`` said meanwhile;
+* intruders (item 3): a real sender at 12 m/s and frames at 20 m/s on the
+  same identifier with sound CRCs: one a counter +1 or +2 ahead, three in
+  sequence after a jump, an interleaved stream with its own counter, a
+  replayed stream with a constant counter offset;
+* plausibility (item 4): the speed alternating 12 <-> 85 m/s each frame;
+  front wheels at 40 m/s against 12;
+* bad CRC 1 in 8 (item 13);
+* issue 21's: pty, serial adapter and socketcand stalls (frames found within
+  20 ms of resuming, frames dropped for age), frozen / stepping / doubled /
+  mostly-bad-CRC sensors, socketcand restart, a ``V`` flood, watchdog times.
 
 Run::
 
-    python bench/bench_can_bridge_faults.py            # about 40 s
-    python bench/bench_can_bridge_faults.py --stall 5 --json out.json
+    python bench/bench_can_bridge_faults.py            # about 2 min
+    python bench/bench_can_bridge_faults.py --stall 5 --trials 10 --json out.json
 """
 
 from __future__ import annotations
@@ -33,7 +43,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import random
 import sys
+import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -43,35 +56,327 @@ import _meta  # noqa: E402  (bench/_meta.py, beside this script)
 import can  # noqa: E402
 from cb_fault_peers import (  # noqa: E402
     SerialAdapter,
+    SocketcandBus,
     SocketcandServer,
     burst_after,
+    candump_tx,
+    frame_ages,
     open_raw_host,
+    read_all,
 )
-from cb_peers import MOTION, CmdChecker, send_sensors, state_message  # noqa: E402
+from cb_peers import MOTION, WHEELS, CmdChecker, send_sensors, state_message  # noqa: E402
 
 import can_bridge  # noqa: E402
+
+CYCLE = 0.02  # the sensors' cycle (the DBC's GenMsgCycleTime)
 
 
 def _bus(path: str) -> can.BusABC:
     return can.Bus(interface="slcan", channel=path, sleep_after_open=0, bitrate=500000)
 
 
-def stall_pty(stall: float) -> dict:
+class Peer:
+    """Every torque frame a python-can bus receives, in its receive thread
+    (``can.Notifier``), with the host clock at reception."""
+
+    def __init__(self, bus: can.BusABC) -> None:
+        self.bus = bus
+        self.seen: list[tuple[float, bytes]] = []
+        outer = self
+
+        class Take(can.Listener):
+            def on_message_received(self, msg: can.Message) -> None:
+                if msg.arbitration_id == 0x101:
+                    outer.seen.append((time.time(), bytes(msg.data)))
+
+            def on_error(self, exc: Exception) -> None:  # the bridge closed: over
+                pass
+
+        self.notifier = can.Notifier(bus, [Take()], timeout=0.02)
+
+    def close(self) -> None:
+        self.notifier.stop()
+        try:
+            self.bus.shutdown()
+        except can.CanError:
+            pass
+
+
+class Commander:
+    """A fresh command every 10 ms: ``torques(seq)``."""
+
+    def __init__(self, bridge: can_bridge.Bridge, torques) -> None:
+        self.bridge, self.torques = bridge, torques
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        seq = 0
+        while not self.stop.is_set():
+            seq += 1
+            try:
+                self.bridge.set_command(self.torques(seq), seq)
+            except can_bridge.CanBridgeError:
+                return
+            time.sleep(0.01)
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(2)
+
+
+def _stale(seen: list, log: str, period_s: float) -> dict:
+    ages = frame_ages(seen, candump_tx(log))
+    old = [a for a in ages if a > period_s]
+    return {"stale": len(old), "oldest_s": round(max(ages, default=0.0), 4), "seen": len(ages)}
+
+
+# ---------------------------------------------------------------- issue 29
+
+
+def socketcand_stall(stall: float, trials: int, phase: str, period_ms: float = 50.0) -> dict:
+    """The server stops reading for ``stall`` s, ``trials`` times: right after
+    answering a frame's echo (``between``) or at a random moment (``random``)."""
+    rng = random.Random(29)
+    totals = {"framed": 0, "stale": 0, "oldest_s": 0.0, "seen": 0, "trials": trials}
+    with tempfile.TemporaryDirectory() as d:
+        for k in range(trials):
+            srv = SocketcandBus()
+            log = os.path.join(d, f"s{k}.log")
+            b = can_bridge.Bridge(
+                f"socketcand:127.0.0.1:{srv.port}/can0", period_ms=period_ms, log_path=log
+            )
+            peer = Peer(
+                can.Bus(interface="socketcand", host="127.0.0.1", port=srv.port, channel="can0")
+            )
+            b.start()
+            cmd = Commander(b, lambda seq: (0.0, 0.0, 2.0 * (seq % 700), 0.0))
+            time.sleep(0.5 + rng.random() * period_ms / 1e3)
+            if phase == "between":
+                srv.stall_after(1)
+                end = time.monotonic() + 5
+                while srv.reading.is_set() and time.monotonic() < end:
+                    time.sleep(0.002)
+            else:
+                srv.stall()
+            time.sleep(stall)
+            srv.resume()
+            time.sleep(0.5)
+            cmd.close()
+            s = b.stats()
+            b.stop()
+            time.sleep(0.1)
+            peer.close()
+            srv.close()
+            r = _stale(peer.seen, log, period_ms / 1e3)
+            totals["framed"] += s["tx_frames"]
+            totals["stale"] += r["stale"]
+            totals["seen"] += r["seen"]
+            totals["oldest_s"] = max(totals["oldest_s"], r["oldest_s"])
+    return totals
+
+
+def reopen() -> dict:
+    """Late open (1 s) and close/reopen with the command held at 1500 Nm."""
+    out = {}
+    with tempfile.TemporaryDirectory() as d:
+        log = os.path.join(d, "late.log")
+        b = can_bridge.Bridge("slcan-pty:", period_ms=50, log_path=log)
+        b.start()
+        cmd = Commander(b, lambda _: (0.0, 0.0, 1500.0, 1500.0))
+        time.sleep(1.0)
+        state_closed = b.stats()["safety_state"]
+        peer = Peer(_bus(b.pty_path))
+        time.sleep(0.6)
+        cmd.close()
+        s = b.stats()
+        b.stop()
+        peer.close()
+        chk = CmdChecker()
+        first = chk.add(0x101, False, peer.seen[0][1]) if peer.seen else None
+        out["late open"] = {
+            "framed": s["tx_frames"],
+            **_stale(peer.seen, log, 0.05),
+            "safety_state_while_closed": state_closed,
+            "first_frame_RL_nm": first["torques"][2] if first else None,
+            "first_frame_mode": first["mode"] if first else None,
+        }
+        log = os.path.join(d, "reopen.log")
+        b = can_bridge.Bridge("slcan-pty:", period_ms=50, log_path=log)
+        b.start()
+        cmd = Commander(b, lambda _: (0.0, 0.0, 1500.0, 1500.0))
+        fd = open_raw_host(b.pty_path)
+        read_all(fd, 0.6)
+        os.write(fd, b"C\r")
+        read_all(fd, 0.4)
+        state_closed = b.stats()["safety_state"]
+        os.write(fd, b"O\r")
+        data = read_all(fd, 0.3)
+        cmd.close()
+        s = b.stats()
+        b.stop()
+        os.close(fd)
+        lines = [x for x in data.split(b"\r") if x.startswith(b"t")]
+        first = CmdChecker().add(0x101, False, bytes.fromhex(lines[0][5:21].decode()))
+        out["reopen"] = {
+            "framed": s["tx_frames"],
+            "safety_state_while_closed": state_closed,
+            "first_frame_RL_nm": first["torques"][2],
+            "ramp_restarts": s["ramp_restarts"],
+        }
+    return out
+
+
+REAL = {**MOTION, "LongSpeed": 12.0}
+FAKE = {**MOTION, "LongSpeed": 20.0}
+
+
+def _sensor_case(motion, period_ms: float = 50.0, extra=None) -> dict:
+    """Play ``motion(k)`` -> [(dt, values, counter)] for VehicleMotion per cycle
+    k (the other four messages sound, ``extra(k)`` overriding some), sample
+    the state every ms. Returns framed, stale, valid %, samples at 20 m/s
+    and at > 50 m/s believed."""
+    with tempfile.TemporaryDirectory() as d:
+        log = os.path.join(d, "b.log")
+        b = can_bridge.Bridge("slcan-pty:", period_ms=period_ms, log_path=log)
+        b.start()
+        bus = _bus(b.pty_path)
+        peer = Peer(bus)
+        cmd = Commander(b, lambda _: (-20.0, -20.0, 26.0, 26.0))
+        n = 80
+        events = []
+        for k in range(n):
+            for dt, vals, c in motion(k):
+                events.append((k * CYCLE + dt, "m", vals, c))
+            events.append((k * CYCLE, "rest", None, k))
+        events.sort(key=lambda e: e[0])
+        done = threading.Event()
+
+        def play() -> None:
+            t0 = time.monotonic()
+            for t, kind, vals, c in events:
+                time.sleep(max(0.0, t0 + t - time.monotonic()))
+                if kind == "m":
+                    bus.send(state_message("VehicleMotion", vals, c % 15))
+                else:
+                    skip = ("VehicleMotion",) + tuple(extra(c) if extra else ())
+                    send_sensors(bus, c % 15, skip=skip)
+                    for name, v in extra(c).items() if extra else ():
+                        bus.send(state_message(name, v, c % 15))
+            done.set()
+
+        th = threading.Thread(target=play, daemon=True)
+        th.start()
+        samples = []
+        while not done.is_set():
+            st = b.latest_state()
+            samples.append((st["valid"], st["long_speed_mps"]))
+            time.sleep(0.001)
+        th.join()
+        cmd.close()
+        s = b.stats()
+        b.stop()
+        peer.close()
+        r = _stale(peer.seen, log, period_ms / 1e3)
+    valid = [v for v, _ in samples]
+    return {
+        "framed": s["tx_frames"],
+        "stale": r["stale"],
+        "valid_pct": round(100.0 * sum(valid) / max(1, len(valid)), 1),
+        "intruder_believed": sum(
+            1 for v, x in samples if v and x is not None and abs(x - 20) < 0.5
+        ),
+        "over_50_believed": sum(1 for v, x in samples if v and x is not None and x > 50),
+        "samples": len(samples),
+        "rx_implausible": s["rx_implausible"],
+        "rx_discarded": s["rx_discarded"],
+    }
+
+
+def intruders() -> dict:
+    k0 = 20
+
+    def real(k):
+        return [(0.0, REAL, k)]
+
+    def with_fake(fake):
+        return lambda k: real(k) + [(dt, FAKE, c) for (kk, dt, c) in fake if kk == k]
+
+    cases = {
+        "intruder +1": [(k0, 0.015, k0 + 1)],
+        "intruder +2": [(k0, 0.015, k0 + 2)],
+        "three after a jump": [(k0, 0.012 + 0.001 * j, k0 + 7 + j) for j in range(3)],
+        "interleaved stream": [(k0 + j, 0.010, k0 + j + 2) for j in range(30)],
+        "replay, counter +1": [(k0 + j, 0.010, k0 + j + 1) for j in range(30)],
+    }
+    return {name: _sensor_case(with_fake(f)) for name, f in cases.items()}
+
+
+def plausibility() -> dict:
+    def jumping(k):
+        v = 12.0 if k < 10 or k % 2 == 0 else 85.0
+        return [(0.0, {**MOTION, "LongSpeed": v}, k)]
+
+    def fast_wheels(k):
+        w = 114.0 if k >= 10 else 12.0 / 0.351
+        return {"WheelSpeeds": {n: w for n in WHEELS}}
+
+    return {
+        "speed 12 <-> 85": _sensor_case(jumping),
+        "wheels 40 vs 12 m/s": _sensor_case(lambda k: [(0.0, REAL, k)], extra=fast_wheels),
+    }
+
+
+def bad_crc_1_in_8() -> dict:
     b = can_bridge.Bridge("slcan-pty:", period_ms=50)
     b.start()
     bus = _bus(b.pty_path)
-    for _ in range(5):
-        bus.recv(1)
-    time.sleep(stall)
-    t0 = time.monotonic()
-    times = []
-    while time.monotonic() - t0 < 0.3:
-        if bus.recv(0.05) is not None:
-            times.append(time.monotonic())
+    samples = []
+    for k in range(100):
+        bus.send(state_message("VehicleMotion", REAL, k % 15, corrupt=k % 8 == 7))
+        send_sensors(bus, k % 15, skip=("VehicleMotion",))
+        time.sleep(CYCLE)
+        if k >= 10:
+            samples.append(b.latest_state()["valid"])
     s = b.stats()
     bus.shutdown()
     b.stop()
-    return {"burst_20ms": burst_after(times, t0, 0.02), "stale_dropped": s["tx_stale_dropped"]}
+    return {
+        "valid_pct": round(100.0 * sum(samples) / len(samples), 1),
+        "rx_crc_errors": s["rx_crc_errors"],
+    }
+
+
+# ---------------------------------------------------------------- issue 21
+
+
+def stall_pty(stall: float) -> dict:
+    with tempfile.TemporaryDirectory() as d:
+        log = os.path.join(d, "b.log")
+        b = can_bridge.Bridge("slcan-pty:", period_ms=50, log_path=log)
+        b.start()
+        bus = _bus(b.pty_path)
+        for _ in range(5):
+            bus.recv(1)
+        time.sleep(stall)
+        t0 = time.monotonic()
+        times, seen = [], []
+        while time.monotonic() - t0 < 0.3:
+            m = bus.recv(0.05)
+            if m is not None:
+                times.append(time.monotonic())
+                seen.append((time.time(), bytes(m.data)))
+        s = b.stats()
+        bus.shutdown()
+        b.stop()
+        r = _stale(seen, log, 0.05)
+    return {
+        "burst_20ms": burst_after(times, t0, 0.02),
+        "stale_dropped": s["tx_stale_dropped"],
+        "stale_seen": r["stale"],
+        "oldest_s": r["oldest_s"],
+    }
 
 
 def stall_serial(stall: float) -> dict:
@@ -130,7 +435,7 @@ def sensors() -> dict:
                 bus.send(state_message(f[0], f[1], f[2], corrupt=len(f) > 3 and f[3]))
             # the other four messages, sound (cb_peers.SENSORS' healthy values)
             send_sensors(bus, k % 15, skip=("VehicleMotion",))
-            time.sleep(0.02)
+            time.sleep(CYCLE)
             if k >= 5:
                 samples.append(b.latest_state()["valid"])
         out[name] = 100.0 * sum(samples) / len(samples)
@@ -225,6 +530,7 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("--stall", type=float, default=2.0, help="stall length, s")
+    ap.add_argument("--trials", type=int, default=5, help="socketcand stalls per phase")
     ap.add_argument("--watchdog-trials", type=int, default=3)
     ap.add_argument(
         "--json",
@@ -234,17 +540,64 @@ def main() -> None:
     )
     args = ap.parse_args()
     meta = _meta.metadata()
-    res = {
-        "stall_pty": stall_pty(args.stall),
-        "stall_serial": stall_serial(args.stall),
-        "stall_socketcand": stall_socketcand(args.stall),
-        "sensors_valid_pct": sensors(),
-        "reconnect": reconnect(),
-        "flood": flood(),
-        "watchdog_ms": watchdog(args.watchdog_trials),
+    res: dict = {
+        "socketcand_stall_between_ticks": socketcand_stall(args.stall, args.trials, "between"),
+        "socketcand_stall_random_phase": socketcand_stall(args.stall, args.trials, "random"),
+        "reopen": reopen(),
+        "intruders": intruders(),
+        "plausibility": plausibility(),
+        "bad_crc_1_in_8": bad_crc_1_in_8(),
     }
-    for k, v in res.items():
-        print(f"{k:<18} {json.dumps(v)}")
+    print("issue 29, per fault (target: 0 stale, 0 intruder samples believed):")
+    head = f"{'fault':<30} {'framed':>6} {'stale':>5} {'valid %':>7} {'intruder':>8} {'>50 m/s':>7}"
+    print(head)
+    print("-" * len(head))
+    for phase in ("between_ticks", "random_phase"):
+        r = res[f"socketcand_stall_{phase}"]
+        print(
+            f"{'socketcand stall, ' + phase.replace('_', ' '):<30} {r['framed']:>6} "
+            f"{r['stale']:>5} {'-':>7} {'-':>8} {'-':>7}   ({r['trials']} stalls of "
+            f"{args.stall:g} s, oldest frame {r['oldest_s']:.3f} s)"
+        )
+    for name, r in res["reopen"].items():
+        print(
+            f"{name:<30} {r['framed']:>6} {r.get('stale', '-'):>5} {'-':>7} {'-':>8} {'-':>7}   "
+            f"(first frame RL {r['first_frame_RL_nm']:g} Nm, safety_state while closed "
+            f"{r['safety_state_while_closed']})"
+        )
+    for group in ("intruders", "plausibility"):
+        for name, r in res[group].items():
+            print(
+                f"{name:<30} {r['framed']:>6} {r['stale']:>5} {r['valid_pct']:>7.1f} "
+                f"{r['intruder_believed']:>8} {r['over_50_believed']:>7}   "
+                f"({r['samples']} samples; implausible {r['rx_implausible']}, "
+                f"discarded unbelieved {r['rx_discarded']})"
+            )
+    r = res["bad_crc_1_in_8"]
+    print(f"{'bad CRC 1 in 8':<30} {'-':>6} {'-':>5} {r['valid_pct']:>7.1f}")
+    res.update(
+        {
+            "stall_pty": stall_pty(args.stall),
+            "stall_serial": stall_serial(args.stall),
+            "stall_socketcand": stall_socketcand(args.stall),
+            "sensors_valid_pct": sensors(),
+            "reconnect": reconnect(),
+            "flood": flood(),
+            "watchdog_ms": watchdog(args.watchdog_trials),
+        }
+    )
+    print()
+    print("issue 21's findings:")
+    for k in (
+        "stall_pty",
+        "stall_serial",
+        "stall_socketcand",
+        "sensors_valid_pct",
+        "reconnect",
+        "flood",
+        "watchdog_ms",
+    ):
+        print(f"{k:<18} {json.dumps(res[k])}")
     meta["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]
     Path(args.json).write_text(json.dumps({"meta": meta, "results": res}, indent=2))
 

@@ -112,10 +112,6 @@ pub fn run_tx<C: Clock>(
     let mut due = sched.deadline();
     let mut last_good = t0;
     let mut state = TransportState::NotOpen;
-    // The output the wire saw before the last frame written, and that
-    // frame's mode: where the limiter goes back to if the frame is flushed
-    // unread at the next tick.
-    let mut seen_before_last: ([i64; 4], Mode) = ([0; 4], Mode::Safe);
     // The last tick put no frame on the wire because of a gap (not open, a
     // write error, the link down or lost).
     let mut in_gap = true;
@@ -144,13 +140,6 @@ pub fn run_tx<C: Clock>(
         let flushed = ready.as_ref().map_or(0, |r| r.flushed);
         let gate = ready.as_ref().map(|r| r.gate);
         let mut tx = lock(&shared.tx);
-        if flushed > 0 {
-            // The last frame never reached the peer: the wire still shows
-            // the one before it.
-            safety.set_output_steps(seen_before_last.0);
-            tx.applied = safety.output();
-            tx.mode = seen_before_last.1;
-        }
         // A gap in transmission restarts the ramp from zero: the actuator
         // has seen nothing (a channel not open, a write error, a link down,
         // reconnecting or lost) and may have timed out or been reset.
@@ -167,12 +156,18 @@ pub fn run_tx<C: Clock>(
             .command_at(deadline)
             .filter(|c| c.received_ns >= stale_before);
         let seen = safety.output_steps();
-        let seen_mode = lock(&shared.tx).mode;
-        let (mode, torques) = if stopping.is_some() {
+        let (mode, mut torques) = if stopping.is_some() {
             safety.stopping()
         } else {
             safety.step(deadline, cmd.as_ref())
         };
+        if flushed > 0 && !gap {
+            // The last frame was flushed unread (or read in the instant
+            // before the flush): this tick repeats its output, one step from
+            // either frame the peer may have last seen, and does not advance.
+            safety.set_output_steps(seen);
+            torques = safety.output();
+        }
         let frame = encode_torque_cmd(&torques, mode, counter);
         let outcome = match (&ready, &frame) {
             (Err(e), _) | (Ok(_), Err(e)) => Err(e.clone()),
@@ -184,11 +179,9 @@ pub fn run_tx<C: Clock>(
         };
         let done = clock.now_ns();
         let written = matches!(outcome, Ok(Written::Yes));
-        if written {
-            seen_before_last = (seen, seen_mode);
-        } else if outcome.is_err() {
+        if outcome.is_err() {
             safety.restart_output();
-        } else {
+        } else if !written {
             safety.set_output_steps(seen);
         }
         in_gap = gap || outcome.is_err();
@@ -688,8 +681,9 @@ mod tests {
 
     #[test]
     fn a_frame_flushed_unread_does_not_advance_the_ramp() {
-        // Tick 5 finds tick 4's frame unread and flushes it: the wire still
-        // shows tick 3's 40 Nm, so tick 5 moves one step from there.
+        // Tick 5 finds tick 4's frame (50 Nm) unread and flushes it: the peer
+        // last saw 40 Nm, or 50 if it read the frame in the instant before
+        // the flush; tick 5 repeats 50 Nm, one step from either.
         let (frames, shared, _, ticks) = held_at_100(|n| {
             if n == 5 {
                 Outcome {
@@ -756,7 +750,9 @@ mod tests {
         /// Whatever the transport does, the sequence the wire saw (frames
         /// written, less those flushed unread) moves by at most one step a
         /// frame (rise/release 10 Nm, the safe release 20 Nm), or restarts
-        /// within one rise step of zero after a gap.
+        /// within one rise step of zero after a gap; the frame after a flush
+        /// is within a step of the flushed frame too (the peer may have read
+        /// it in the instant before the flush).
         #[test]
         fn the_wire_only_ever_sees_ramps(
             ticks in proptest::collection::vec((arb_outcome(), proptest::array::uniform4(-150.0f64..150.0), any::<bool>()), 5..80),
@@ -780,14 +776,17 @@ mod tests {
             let mut wire: Vec<[f64; 4]> = vec![[0.0; 4]];
             let mut retractable = false;
             for ((_, f, o), k) in frames.iter().zip(&at) {
-                if o.flushed > 0 && retractable {
-                    wire.pop();
-                }
                 let v = decode(f).2;
-                let prev = *wire.last().unwrap_or(&[0.0; 4]);
-                for (a, b) in prev.iter().zip(&v) {
-                    prop_assert!((b - a).abs() <= 20.0 + 1e-9 || b.abs() <= 10.0 + 1e-9,
-                        "tick {k}: {prev:?} -> {v:?}");
+                let mut before = vec![];
+                if o.flushed > 0 && retractable {
+                    before.extend(wire.pop());
+                }
+                before.push(*wire.last().unwrap_or(&[0.0; 4]));
+                for prev in before {
+                    for (a, b) in prev.iter().zip(&v) {
+                        prop_assert!((b - a).abs() <= 20.0 + 1e-9 || b.abs() <= 10.0 + 1e-9,
+                            "tick {k}: {prev:?} -> {v:?}");
+                    }
                 }
                 wire.push(v);
                 retractable = true;

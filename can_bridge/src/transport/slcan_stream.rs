@@ -59,6 +59,10 @@ struct Port {
     /// only around one `ioctl` and one non-blocking `write`: the transmit
     /// thread never waits behind the receive thread for longer than that.
     write_lock: Mutex<()>,
+    /// The transmit thread is waiting for `write_lock`: the receive thread
+    /// lets it have the lock (drops a reply) rather than take it again, so a
+    /// peer flooding commands cannot starve the tick by lock convoy.
+    tx_waiting: AtomicBool,
     /// Where the lines written since the last flush end (pty age rule: a
     /// flush may only discard whole lines). Locked only under `write_lock`.
     ledger: Mutex<Ledger>,
@@ -122,6 +126,14 @@ impl Port {
 
     fn lock(&self) -> std::sync::MutexGuard<'_, ()> {
         self.write_lock.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// The transmit thread's lock: announced, so the receive thread yields it.
+    fn lock_tx(&self) -> std::sync::MutexGuard<'_, ()> {
+        self.tx_waiting.store(true, Ordering::Release);
+        let g = self.lock();
+        self.tx_waiting.store(false, Ordering::Release);
+        g
     }
 
     /// Bytes written to a pty master that the peer has not read yet (the
@@ -266,7 +278,7 @@ impl Sink for SlcanSink {
                     });
                 }
                 let port = self.port.clone();
-                let _g = port.lock();
+                let _g = port.lock_tx();
                 Ok(match self.port.unread_lines() {
                     Unread::Nothing => Ready::OPEN,
                     Unread::WholeLines => {
@@ -287,7 +299,7 @@ impl Sink for SlcanSink {
             }
             Role::Host(acks) => {
                 let port = self.port.clone();
-                let _g = port.lock();
+                let _g = port.lock_tx();
                 let mut flushed = 0;
                 if out_queue(self.port.fd.raw()).is_some_and(|n| n > 0) {
                     // SAFETY: fd is an open tty.
@@ -317,7 +329,7 @@ impl Sink for SlcanSink {
     fn write(&mut self, frame: &CanFrame) -> Result<Written> {
         let line = slcan::encode(frame);
         let port = self.port.clone();
-        let _g = port.lock();
+        let _g = port.lock_tx();
         if let Role::Host(acks) = &self.role {
             acks.replied.store(false, Ordering::Release);
             acks.held.store(0, Ordering::Release);
@@ -357,8 +369,13 @@ struct SlcanSource {
 }
 
 impl SlcanSource {
-    /// Reply to the peer without ever waiting: only while it reads.
+    /// Reply to the peer without ever waiting: only while it reads, and
+    /// never while the transmit thread waits for the port.
     fn reply(&self, bytes: &[u8]) {
+        if self.port.tx_waiting.load(Ordering::Acquire) {
+            self.health.replies_dropped.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
         let _g = self.port.lock();
         let room = self
             .port
@@ -525,6 +542,7 @@ pub fn open_pty() -> Result<Opened> {
     let port = Arc::new(Port {
         fd: m,
         write_lock: Mutex::new(()),
+        tx_waiting: AtomicBool::new(false),
         ledger: Mutex::new(Ledger::default()),
         slave_keeper: Some(keeper),
         what: format!("slcan-pty {path}"),
@@ -652,6 +670,7 @@ pub fn open_serial(path: &str, baud: u32, bitrate: u32) -> Result<Opened> {
     let port = Arc::new(Port {
         fd,
         write_lock: Mutex::new(()),
+        tx_waiting: AtomicBool::new(false),
         ledger: Mutex::new(Ledger::default()),
         slave_keeper: None,
         what: format!("slcan {shown}"),
