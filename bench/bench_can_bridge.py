@@ -96,17 +96,18 @@ def receive_clock(received: list, written: list, period_ms: float) -> dict:
     """Period errors on the receiver's clock, the bridge's part and the rest.
 
     ``received``: (receive time, data hex) at the peer; ``written``: (write
-    time, data) from the bridge's log. Frames are matched by their bytes (the
-    counter and CRC make consecutive frames distinct); pairs of consecutive
-    counters only (a frame the age rule dropped breaks a pair)."""
+    time, data) from the bridge's log. Frames are matched by their bytes, to
+    the write nearest in time (the same bytes recur only after 15 counter
+    values, 750 ms at 50 ms); pairs of consecutive counters only (a frame the
+    age rule dropped breaks a pair)."""
     w = {}
     for t, d in written:
         w.setdefault(d.hex(), []).append(t)
     rows = []  # (receive time, write time, counter)
     for t, hx in received:
-        cands = [x for x in w.get(hx, []) if x <= t + 0.001]
+        cands = w.get(hx, [])
         if cands:
-            rows.append((t, max(cands), int(hx[3], 16)))
+            rows.append((t, min(cands, key=lambda x: abs(x - t)), int(hx[3], 16)))
     p = period_ms / 1e3
     rx_err, tx_err, lat = [], [], [r[0] - r[1] for r in rows]
     for a, b in zip(rows, rows[1:], strict=False):

@@ -184,7 +184,8 @@ def reopen() -> dict:
         log = os.path.join(d, "late.log")
         b = can_bridge.Bridge("slcan-pty:", period_ms=50, log_path=log)
         b.start()
-        cmd = Commander(b, lambda _: (0.0, 0.0, 1500.0, 1500.0))
+        # held at 1500 Nm; the front wheel's few Nm make every frame unique
+        cmd = Commander(b, lambda seq: (-2.0 * (seq % 700), 0.0, 1500.0, 1500.0))
         time.sleep(1.0)
         state_closed = b.stats()["safety_state"]
         peer = Peer(_bus(b.pty_path))
@@ -243,7 +244,8 @@ def _sensor_case(motion, period_ms: float = 50.0, extra=None) -> dict:
         b.start()
         bus = _bus(b.pty_path)
         peer = Peer(bus)
-        cmd = Commander(b, lambda _: (-20.0, -20.0, 26.0, 26.0))
+        # a torque that changes with every command keeps every frame's bytes unique
+        cmd = Commander(b, lambda seq: (0.0, 0.0, 2.0 * (seq % 700), 0.0))
         n = 80
         events = []
         for k in range(n):
@@ -356,6 +358,7 @@ def stall_pty(stall: float) -> dict:
         log = os.path.join(d, "b.log")
         b = can_bridge.Bridge("slcan-pty:", period_ms=50, log_path=log)
         b.start()
+        cmd = Commander(b, lambda seq: (0.0, 0.0, 2.0 * (seq % 700), 0.0))
         bus = _bus(b.pty_path)
         for _ in range(5):
             bus.recv(1)
@@ -367,6 +370,7 @@ def stall_pty(stall: float) -> dict:
             if m is not None:
                 times.append(time.monotonic())
                 seen.append((time.time(), bytes(m.data)))
+        cmd.close()
         s = b.stats()
         bus.shutdown()
         b.stop()

@@ -364,10 +364,13 @@ def candump_tx(path: str, frame_id: int = 0x101) -> list[tuple[float, bytes]]:
 
 def frame_ages(seen: list[tuple[float, bytes]], written: list[tuple[float, bytes]]) -> list[float]:
     """Age of each frame a peer saw (its receive time minus the time the bridge
-    wrote the same bytes: the latest write of those bytes at or before it)."""
+    wrote the same bytes: the latest write of those bytes at or before it, with
+    20 ms for the bridge's stamp, taken after its write returns). The same
+    bytes must not recur within the ages measured: commands that change with
+    every tick make them unique."""
     ages = []
     for t, data in seen:
-        cands = [w for w, d in written if d == data and w <= t + 0.005]
+        cands = [w for w, d in written if d == data and w <= t + 0.02]
         if cands:
             ages.append(t - max(cands))
     return ages
