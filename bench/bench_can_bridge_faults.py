@@ -385,20 +385,37 @@ def stall_pty(stall: float) -> dict:
 
 def stall_serial(stall: float) -> dict:
     a = SerialAdapter()
-    b = can_bridge.Bridge(f"slcan:{a.path}", period_ms=50)
-    b.start()
-    time.sleep(0.3)
-    a.stall()
-    time.sleep(stall)
-    n0 = len(a.lines)
-    t0 = time.monotonic()
-    a.resume()
-    time.sleep(0.3)
-    s = b.stats()
-    b.stop()
-    a.close()
-    times = [t for t, _ in a.lines[n0:]]
-    return {"burst_20ms": burst_after(times, t0, 0.02), "stale_dropped": s["tx_stale_dropped"]}
+    with tempfile.TemporaryDirectory() as d:
+        log = os.path.join(d, "b.log")
+        b = can_bridge.Bridge(f"slcan:{a.path}", period_ms=50, log_path=log)
+        b.start()
+        cmd = Commander(b, lambda seq: (0.0, 0.0, 2.0 * (seq % 700), 0.0))
+        time.sleep(0.3)
+        a.stall()
+        time.sleep(stall)
+        n0 = len(a.lines)
+        t0 = time.monotonic()
+        a.resume()
+        time.sleep(0.3)
+        cmd.close()
+        s = b.stats()
+        b.stop()
+        a.close()
+        times = [t for t, _ in a.lines[n0:]]
+        # the adapter stamps time.monotonic(), the log time.time()
+        shift = time.time() - time.monotonic()
+        seen = [
+            (t + shift, bytes.fromhex(x[5:21].decode()))
+            for t, x in a.lines
+            if x.startswith(b"t101")
+        ]
+        r = _stale(seen, log, 0.05)
+    return {
+        "burst_20ms": burst_after(times, t0, 0.02),
+        "stale_dropped": s["tx_stale_dropped"],
+        "stale_seen": r["stale"],
+        "oldest_s": r["oldest_s"],
+    }
 
 
 def stall_socketcand(stall: float) -> dict:

@@ -138,6 +138,7 @@ class SerialAdapter:
         self.commands: list[bytes] = []
         self.reading = threading.Event()
         self.reading.set()
+        self._stall_after: int | None = None
         self._stop = threading.Event()
         self._buf = b""
         self.thread = threading.Thread(target=self._run, daemon=True)
@@ -157,7 +158,7 @@ class SerialAdapter:
                 return
             now = time.monotonic()
             self._buf += chunk
-            while b"\r" in self._buf:
+            while b"\r" in self._buf and self.reading.is_set():
                 line, self._buf = self._buf.split(b"\r", 1)
                 self._handle(now, line)
 
@@ -170,9 +171,17 @@ class SerialAdapter:
             reply = b"V1013\r" if line == b"V" else b"\r"
         if self.answer:
             os.write(self.master, reply)
+        if self._stall_after is not None and len(self.lines) >= self._stall_after:
+            self._stall_after = None
+            self.reading.clear()
 
     def send_line(self, line: bytes) -> None:
         os.write(self.master, line)
+
+    def stall_after(self, n_more: int) -> None:
+        """Stop reading right after acknowledging the n-th frame from now:
+        between two of the bridge's ticks."""
+        self._stall_after = len(self.lines) + n_more
 
     def stall(self) -> None:
         self.reading.clear()

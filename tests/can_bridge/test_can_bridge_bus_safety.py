@@ -15,7 +15,14 @@ from pathlib import Path
 
 import can
 import pytest
-from cb_fault_peers import SocketcandBus, candump_tx, frame_ages, open_raw_host, read_all
+from cb_fault_peers import (
+    SerialAdapter,
+    SocketcandBus,
+    candump_tx,
+    frame_ages,
+    open_raw_host,
+    read_all,
+)
 from cb_peers import MOTION, WHEELS, CmdChecker, send_sensors, state_message
 
 import can_bridge
@@ -177,6 +184,42 @@ def test_i2_a_stalled_socketcand_server_never_puts_a_stale_frame_on_the_bus(
     # The rule is "no frame older than one period"; the assertion leaves the
     # relay's scheduling delays on a loaded machine out of it: the frame
     # withheld by the stall would be about 1 s old.
+    assert max(ages) < 0.5, sorted(ages)[-5:]
+
+
+def test_i2_a_stalled_serial_adapter_never_gets_a_stale_frame(tmp_path: Path) -> None:
+    """An SLCAN adapter (a pty stand-in, whose queue the bridge cannot see)
+    stops reading for 1 s right after acknowledging a frame, then resumes:
+    every frame it reads is younger than 0.5 s (before: the next tick's
+    frame waited in the pty and came out 1 s old)."""
+    adapter = SerialAdapter()
+    log = tmp_path / "bridge.log"
+    bridge = can_bridge.Bridge(f"slcan:{adapter.path}", period_ms=100, log_path=log)
+    bridge.start()
+    cmd = Commander(bridge, lambda seq: (0.0, 0.0, 2.0 * (seq % 700), 0.0))
+    try:
+        time.sleep(0.8)
+        adapter.stall_after(1)
+        end = time.monotonic() + 10
+        while adapter.reading.is_set() and time.monotonic() < end:
+            time.sleep(0.005)
+        assert not adapter.reading.is_set(), "the adapter never stalled"
+        time.sleep(1.0)
+        adapter.resume()
+        time.sleep(1.0)
+    finally:
+        cmd.close()
+        bridge.stop()
+        adapter.close()
+    # the adapter's clock is time.monotonic(); the log's is time.time()
+    shift = time.time() - time.monotonic()
+    seen = [
+        (t + shift, bytes.fromhex(line[5:21].decode()))
+        for t, line in adapter.lines
+        if line.startswith(b"t101")
+    ]
+    ages = frame_ages(seen, candump_tx(str(log)))
+    assert len(ages) >= 8, (len(seen), len(ages))
     assert max(ages) < 0.5, sorted(ages)[-5:]
 
 

@@ -188,6 +188,22 @@ pub fn open(spec: &ChannelSpec, bitrate: u32) -> Result<Opened> {
     }
 }
 
+/// Lead of a liveness probe before a deadline: three measured round trips
+/// (`rtt_ns`, `u64::MAX` while none is known) plus 1 ms, at least 2 ms, at
+/// most half a period. A peer that stops reading within the lead before a
+/// deadline can still find that one frame when it resumes; a longer lead
+/// would widen that window, a shorter one hold frames back from a slow peer.
+pub fn probe_lead(rtt_ns: u64, period_ns: u64) -> u64 {
+    let half = period_ns / 2;
+    if rtt_ns == u64::MAX {
+        return half;
+    }
+    rtt_ns
+        .saturating_mul(3)
+        .saturating_add(1_000_000)
+        .clamp(2_000_000u64.min(half), half)
+}
+
 /// Bytes queued for output on `fd` (`TIOCOUTQ`, which is `SIOCOUTQ` on a
 /// socket: for TCP the bytes the peer has not acknowledged); `None` if the
 /// descriptor cannot tell.

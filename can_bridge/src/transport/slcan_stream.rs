@@ -34,11 +34,12 @@ use super::{out_queue, Gate, Health, Opened, Ready, RxItem, Sink, Source, Writte
 use crate::channel::{baud_constant, slcan_bitrate_code};
 use crate::error::{clip, Error, Result};
 use crate::frame::CanFrame;
+use crate::scheduler::monotonic_ns;
 use crate::slcan::{self, parse_command, Cmd, Event};
 use std::collections::VecDeque;
 use std::ffi::CString;
 use std::io;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -209,22 +210,63 @@ struct Channel {
 }
 
 /// The host role's view of the adapter's acknowledgements.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 struct Acks {
     /// The adapter has answered a frame: it acknowledges (Lawicel `z`).
     known: AtomicBool,
-    /// A reply arrived since the last frame was written.
-    replied: AtomicBool,
+    /// Replies owed: one per frame and per `V` probe written, counted before
+    /// the write (the answer can be read before the writer runs again).
+    owed: AtomicU32,
+    /// When the last line that owes a reply was written (monotonic ns).
+    sent_ns: AtomicU64,
+    /// A reply's round trip, a decaying maximum (ns; `u64::MAX`: none yet).
+    rtt_ns: AtomicU64,
     /// A frame has been written since the handshake.
     wrote: AtomicBool,
     /// Ticks held since the last frame waiting for an acknowledgement; a `V`
     /// probe goes out on the first and every [`REPROBE_TICKS`]th (a lost
     /// answer must not hold frames forever).
-    held: std::sync::atomic::AtomicU32,
+    held: AtomicU32,
 }
 
 /// See [`Acks::held`].
 const REPROBE_TICKS: u32 = 5;
+
+impl Default for Acks {
+    fn default() -> Self {
+        Acks {
+            known: AtomicBool::new(false),
+            owed: AtomicU32::new(0),
+            sent_ns: AtomicU64::new(0),
+            rtt_ns: AtomicU64::new(u64::MAX),
+            wrote: AtomicBool::new(false),
+            held: AtomicU32::new(0),
+        }
+    }
+}
+
+impl Acks {
+    /// Count a reply owed, then write `bytes`; uncount it if nothing went out.
+    fn write_owing(&self, port: &Port, bytes: &[u8]) -> io::Result<bool> {
+        self.sent_ns.store(monotonic_ns(), Ordering::Release);
+        self.owed.fetch_add(1, Ordering::AcqRel);
+        let r = port.write_once(bytes);
+        if !matches!(r, Ok(true)) {
+            self.settle();
+        }
+        r
+    }
+
+    /// One reply fewer owed (never below zero); the round trip of the last
+    /// line if it was the only one owed.
+    fn settle(&self) -> u32 {
+        self.owed
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+                Some(n.saturating_sub(1))
+            })
+            .unwrap_or(0)
+    }
+}
 
 #[derive(Clone)]
 enum Role {
@@ -307,11 +349,11 @@ impl Sink for SlcanSink {
                     self.need_cr = true;
                     flushed = 1;
                 }
-                if acks.known.load(Ordering::Acquire) && !acks.replied.load(Ordering::Acquire) {
-                    // The adapter has not taken the last frame: do not queue
-                    // another behind it; ask it for a sign of life instead.
+                if acks.known.load(Ordering::Acquire) && acks.owed.load(Ordering::Acquire) > 0 {
+                    // The adapter has not answered the last frame or probe:
+                    // do not queue a frame behind it; ask for a sign of life.
                     if acks.held.fetch_add(1, Ordering::AcqRel) % REPROBE_TICKS == 0 {
-                        let _ = self.port.write_once(b"V\r");
+                        let _ = acks.write_owing(&self.port, b"V\r");
                     }
                     return Ok(Ready {
                         gate: Gate::Busy,
@@ -330,15 +372,52 @@ impl Sink for SlcanSink {
         let line = slcan::encode(frame);
         let port = self.port.clone();
         let _g = port.lock_tx();
-        if let Role::Host(acks) = &self.role {
-            acks.replied.store(false, Ordering::Release);
+        let role = self.role.clone();
+        if let Role::Host(acks) = &role {
             acks.held.store(0, Ordering::Release);
+            acks.sent_ns.store(monotonic_ns(), Ordering::Release);
+            acks.owed.fetch_add(1, Ordering::AcqRel);
         }
-        let ok = self.write_frame(line.as_bytes())?;
-        if let (true, Role::Host(acks)) = (ok, &self.role) {
-            acks.wrote.store(true, Ordering::Release);
+        let ok = self.write_frame(line.as_bytes());
+        if let Role::Host(acks) = &role {
+            if matches!(ok, Ok(true)) {
+                acks.wrote.store(true, Ordering::Release);
+            } else {
+                acks.settle();
+            }
         }
-        Ok(if ok { Written::Yes } else { Written::Dropped })
+        Ok(if ok? { Written::Yes } else { Written::Dropped })
+    }
+
+    /// An adapter that acknowledges frames gets a `V` probe ahead of each
+    /// deadline (three measured round trips plus 1 ms, within 2 ms..half a
+    /// period), and the frame only if it answers by the deadline: an
+    /// adapter that stopped reading since the last tick gets no frame to
+    /// hold (what it has taken cannot be flushed, and a pty standing in for
+    /// an adapter hides even its queue from `TIOCOUTQ`).
+    fn probe_lead_ns(&self, period_ns: u64) -> Option<u64> {
+        let Role::Host(acks) = &self.role else {
+            return None;
+        };
+        if !acks.known.load(Ordering::Acquire) {
+            return None;
+        }
+        Some(super::probe_lead(
+            acks.rtt_ns.load(Ordering::Acquire),
+            period_ns,
+        ))
+    }
+
+    fn probe(&mut self) {
+        let Role::Host(acks) = self.role.clone() else {
+            return;
+        };
+        if !acks.known.load(Ordering::Acquire) || acks.owed.load(Ordering::Acquire) > 0 {
+            return;
+        }
+        let port = self.port.clone();
+        let _g = port.lock_tx();
+        let _ = acks.write_owing(&port, if self.need_cr { b"\rV\r" } else { b"V\r" });
     }
 
     fn close(&mut self) {
@@ -448,7 +527,12 @@ fn note_reply(acks: &Acks) {
     if acks.wrote.load(Ordering::Acquire) {
         acks.known.store(true, Ordering::Release);
     }
-    acks.replied.store(true, Ordering::Release);
+    if acks.settle() == 1 {
+        let rtt = monotonic_ns().saturating_sub(acks.sent_ns.load(Ordering::Acquire));
+        let old = acks.rtt_ns.load(Ordering::Acquire);
+        let decayed = if old == u64::MAX { 0 } else { old - old / 8 };
+        acks.rtt_ns.store(rtt.max(decayed), Ordering::Release);
+    }
 }
 
 impl Source for SlcanSource {

@@ -264,9 +264,6 @@ impl Link {
     }
 }
 
-/// Shortest lead of the probe before a deadline, ns.
-const PROBE_LEAD_MIN_NS: u64 = 2_000_000;
-
 /// Ticks a frame may be withheld for a missing echo before a bare
 /// `< echo >` is sent again (a lost answer must not hold frames forever).
 const REPROBE_TICKS: u32 = 5;
@@ -379,15 +376,10 @@ impl Sink for TcpSink {
         if !self.link.echo_known.load(Ordering::Acquire) {
             return None;
         }
-        let rtt = self.link.rtt_ns.load(Ordering::Acquire);
-        let half = period_ns / 2;
-        Some(if rtt == u64::MAX {
-            half
-        } else {
-            rtt.saturating_mul(3)
-                .saturating_add(1_000_000)
-                .clamp(PROBE_LEAD_MIN_NS.min(half), half)
-        })
+        Some(super::probe_lead(
+            self.link.rtt_ns.load(Ordering::Acquire),
+            period_ns,
+        ))
     }
 
     /// Ask the server for an echo ahead of the deadline, unless one is out
