@@ -16,11 +16,13 @@ to it (same A_d, B_d, x0, bounds and R_(i) diagonals).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from .problem import Agent, Objective, Problem
 
-__all__ = ["random_problem"]
+__all__ = ["problem_dict", "random_problem"]
 
 
 def random_problem(
@@ -127,3 +129,42 @@ def random_problem(
     x0 = rng.standard_normal(nx)
     w = disturbance * extra.standard_normal((horizon, nx)) if disturbance else None
     return Problem(horizon=horizon, A=A, x0=x0, agents=agents, objectives=objectives, w=w)
+
+
+def problem_dict(problem: Problem) -> dict[str, Any]:
+    """``problem`` in the JSON problem-file layout (:meth:`Problem.from_dict`; the
+    README's format), plain lists, so a generated problem can be written with
+    ``json.dump`` and solved by ``ampc solve``."""
+
+    def arr(x: Any) -> Any:
+        a = np.asarray(x, dtype=float)
+        if not np.all(np.isfinite(a)):
+            raise ValueError("problem: a bound or weight is not finite; JSON has no inf")
+        return a.tolist()
+
+    out: dict[str, Any] = {
+        "horizon": int(problem.horizon),
+        "A": arr(problem.A),
+        "x0": arr(problem.x0),
+        "agents": [
+            {"name": a.name, "B": arr(a.B), "R": arr(a.R), "lb": arr(a.lb), "ub": arr(a.ub)}
+            for a in problem.agents
+        ],
+        "objectives": [
+            {
+                "name": o.name,
+                "C": arr(o.C),
+                "Q": arr(o.Q),
+                "ref": arr(o.ref),
+                **({} if o.agents is None else {"agents": list(o.agents)}),
+            }
+            for o in problem.objectives
+        ],
+    }
+    if problem.w is not None:
+        out["w"] = arr(problem.w)
+    if problem.constraints:
+        out["constraints"] = [
+            {"A": {k: arr(v) for k, v in c.A.items()}, "b": arr(c.b)} for c in problem.constraints
+        ]
+    return out

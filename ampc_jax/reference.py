@@ -22,6 +22,7 @@ from .results import SolveResult, SolveStats, Status, usable
 __all__ = [
     "OSQPReference",
     "clarabel_solve",
+    "qp_gap",
     "reference_gap",
     "reference_inputs",
     "solve_reference",
@@ -78,6 +79,27 @@ def reference_gap(qp: CondensedQP, x: Any, z: Any, offset: float) -> float:
     return gap / max(1.0, abs(J))
 
 
+def qp_gap(qp: CondensedQP, x: Any, z: Any) -> float:
+    """The duality gap of ``x`` with multipliers ``z`` (clipped at 0) on the
+    condensed QP: J(x) minus the Lagrangian dual bound of z, in the form of
+    :func:`~ampc_jax.admm.stopping.duality_gap` (the same definition as the
+    formulations' ``stats.gap``)::
+
+        gap = 1/2 g'H^-1 g + z'(h - G x),   g = H x + E + G'z
+
+    inf when x or z is not finite or H is singular."""
+    x = np.asarray(x, float)
+    z = np.maximum(np.asarray(z, float), 0.0)
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(z))):
+        return float("inf")
+    g = qp.H @ x + qp.E + qp.G.T @ z
+    try:
+        Hg = np.linalg.solve(qp.H, g)
+    except np.linalg.LinAlgError:
+        return float("inf")
+    return float(0.5 * g @ Hg + z @ (qp.h - qp.G @ x))
+
+
 def solve_reference(
     topology: Topology,
     data: ProblemData,
@@ -90,7 +112,8 @@ def solve_reference(
     ``eps`` sets the solver's tolerances. The returned ``u`` is (N_p, n_u);
     residual fields hold the solver's primal and dual residuals when it reports
     them (as 1-element arrays). ``stats.solve_time`` holds the solve time in
-    seconds (Clarabel: setup and solve; OSQP: the solve after its setup).
+    seconds (Clarabel: setup and solve; OSQP: the solve after its setup) and
+    ``stats.gap`` the duality gap of the solution (:func:`qp_gap`).
 
     A Clarabel solve it calls solved is reported as ``solved_inaccurate`` (5)
     when its duality gap exceeds 1e-5 of the full cost (:func:`reference_gap`):
@@ -113,6 +136,7 @@ def solve_reference(
             status = Status.SOLVED_INACCURATE  # solved by Clarabel's measure, not the full cost's
         if not usable(status):  # an infeasibility certificate is no input
             u = np.full_like(u, np.nan)
+        gap = qp_gap(qp, u, sol.z) if u.size == n else float("inf")
         iters = int(sol.iterations)
         pres = float(getattr(sol, "r_prim", np.nan))
         dres = float(getattr(sol, "r_dual", np.nan))
@@ -121,7 +145,7 @@ def solve_reference(
         t0 = time.perf_counter()  # setup excluded, as for a warm update + solve
         res = ref.solve()
         elapsed = time.perf_counter() - t0
-        return res._replace(stats=SolveStats(solve_time=elapsed))
+        return res._replace(stats=SolveStats(gap=ref.gap(res), solve_time=elapsed))
     else:
         raise ValueError(f"solver: expected 'clarabel' or 'osqp', got {solver!r}")
     return SolveResult(
@@ -134,7 +158,7 @@ def solve_reference(
         primal_residual=np.array([pres]),
         dual_residual=np.array([dres]),
         rho=np.array([np.nan]),
-        stats=SolveStats(solve_time=elapsed),
+        stats=SolveStats(gap=gap, solve_time=elapsed),
     )
 
 
@@ -186,6 +210,8 @@ class OSQPReference:
 
         self.topology = topology
         qp = _numpy_qp(topology, data)
+        self._qp = qp  # the QP held, for the duality gap of a solution
+        self._y: Any = None  # the last solve's multipliers
         n = qp.H.shape[0]
         rows, cols = np.triu_indices(n)
         # Dense upper triangle with explicit zeros kept, so updates never change sparsity.
@@ -226,6 +252,7 @@ class OSQPReference:
     def update_qp(self, qp: CondensedQP) -> None:
         """Update from an already condensed QP (numpy), skipping the condensing:
         q, P, the constraint rows' coefficients and their right-hand sides."""
+        self._qp = qp
         self.solver.update(
             q=qp.E,
             u=qp.h,
@@ -234,7 +261,11 @@ class OSQPReference:
         )
 
     def solve(self) -> SolveResult:
+        """Solve the current QP (warm started from the last solution). Its duality
+        gap is :meth:`gap` (a linear solve on the host, apart so that a timed
+        solve is OSQP's alone)."""
         res = self.solver.solve(raise_error=False)  # failures become a status
+        self._y = res.y
         info = res.info
         status = _reference_status(str(info.status))
         T = self.topology
@@ -252,4 +283,13 @@ class OSQPReference:
             dual_residual=np.array([float(info.dual_res)]),
             rho=np.array([float(info.rho_estimate)]),
             state=None,
+            stats=SolveStats(),
         )
+
+    def gap(self, result: SolveResult) -> float:
+        """:func:`qp_gap` of the last :meth:`solve`'s ``result`` with its multipliers
+        (upper rows only, the lower bounds being -inf: y >= 0 up to OSQP's
+        tolerance); inf without a solution."""
+        if self._y is None:
+            return float("inf")
+        return qp_gap(self._qp, np.asarray(result.u).reshape(-1), self._y)

@@ -48,7 +48,10 @@ class Status(enum.IntEnum):
 
 
 _MESSAGES = {
-    Status.SOLVED: "the stopping rule held (eq.Convergence)",
+    Status.SOLVED: (
+        "the stopping rule held (eq.Convergence); stats.gap bounds how far the inputs' "
+        "cost is above the optimum"
+    ),
     Status.MAX_ITER_REACHED: (
         "stopped at the iteration cap before the stopping rule held; the inputs are the "
         "last iterate, projected on the bounds"
@@ -106,10 +109,21 @@ def status_message(code: Any) -> str:
 class SolveStats(NamedTuple):
     """What a solve measured besides its iterate (a pytree; fields may be None).
 
+    gap : () a duality gap of the result: the integrated cost of ``u`` minus a
+        Lagrangian dual bound from the multipliers, so J(u) - J* <= gap (cost
+        units; :func:`~ampc_jax.admm.stopping.duality_gap`). For ``u``
+        satisfying every row (always with box rows only: ``u`` is projected on
+        the bounds), 1/2 ||u - U*||_H^2 <= gap, H the integrated Hessian: the
+        inputs are within sqrt(2 gap / lambda_min(H)) of the optimum. It
+        bounds the distance to the optimum of the problem the formulation
+        solves, the integrated one when the groups S_j hold every agent that
+        moves their outputs (as derived from the model). Computed once, in the
+        result; unused, it costs nothing under ``jit``.
     solve_time : seconds the solve took, timed on the host around the solver
         call (reference solvers); None inside ``jit``, where nothing is timed.
     """
 
+    gap: Any = None
     solve_time: Any = None
 
 

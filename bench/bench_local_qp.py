@@ -308,7 +308,11 @@ class QpaxFormulation1:
             point=point,
             at=at,
         )
-        res = fd.result(setup, out)
+        # the package's result takes its own state: the outer iterate, no inner one
+        full = fd.cold_state(out.Z.dtype)._replace(
+            **{k: getattr(out, k) for k in QState._fields[:6]}
+        )
+        res = fd.result(setup, full)
         return res.u[0], res.iterations, res.converged, out.ip_iters
 
 

@@ -36,7 +36,7 @@ from ..problem.data import ProblemData
 from ..problem.topology import Topology
 from ..results import SolveResult
 from .feasibility import with_certificate
-from .params import DEFAULT_TOL, SolverParams, solver_params
+from .params import DEFAULT_TOL, DEFAULT_TOL_REL, SolverParams, solver_params
 from .runners import run_fixed, run_while
 
 __all__ = ["ADMMSolver"]
@@ -106,18 +106,22 @@ class ADMMSolver(abc.ABC):
         tol_primal: Any = DEFAULT_TOL,
         tol_dual: Any = DEFAULT_TOL,
         dtype: Any = None,
+        *,
+        tol_rel: Any = DEFAULT_TOL_REL,
     ) -> SolverParams:
         """Validated :class:`SolverParams` with ``n_rho`` rho values
         (:func:`~ampc_jax.admm.params.solver_params`): ``rho`` a factor on the
         formulation's automatic rho_j (rho_j itself with ``rho_method="given"``),
         default 1.0; ``relaxation`` in (0, 2), default 1.0 (the paper);
-        tolerances default 1e-6."""
+        absolute tolerances default 1e-6, the relative one ``tol_rel`` 0
+        (:class:`~ampc_jax.admm.params.SolverParams`)."""
         return solver_params(
             self.n_rho,
             rho=rho,
             relaxation=relaxation,
             tol_primal=tol_primal,
             tol_dual=tol_dual,
+            tol_rel=tol_rel,
             dtype=dtype,
         )
 

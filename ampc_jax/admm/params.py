@@ -16,10 +16,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["DEFAULT_TOL", "SolverParams", "as_params", "solver_params"]
+__all__ = ["DEFAULT_TOL", "DEFAULT_TOL_REL", "SolverParams", "as_params", "solver_params"]
 
 DEFAULT_TOL = 1e-6
 """Default eps_r = eps_s of eq.Convergence (squared norms, the constraint rows' units)."""
+
+DEFAULT_TOL_REL = 0.0
+"""Default relative tolerance eps_rel: 0, the absolute rule alone, so that the
+iteration counts and the closed-loop figures are those of the absolute rule."""
 
 
 class SolverParams(NamedTuple):
@@ -34,14 +38,19 @@ class SolverParams(NamedTuple):
         (Boyd et al. 2011, sec. 3.4.3): A U is replaced there by
         alpha A U + (1 - alpha)(b - Z_prev). alpha = 1 is the paper's iteration.
     tol_primal, tol_dual : () eps_r and eps_s of eq.Convergence, on squared
-        norms, absolute, in the constraint rows' units squared: scale them with
-        the problem.
+        norms, absolute, in the constraint rows' units squared.
+    tol_rel : () eps_rel, relative, on norms (after OSQP, Stellato et al.
+        2020, sec. 3.4): objective j stops when ||r_j|| <= sqrt(eps_r) +
+        eps_rel * scale_j and ||s_j|| <= sqrt(eps_s) + eps_rel * scale_j, with
+        scale_j the size of the iterates the residuals compare
+        (:mod:`~ampc_jax.admm.stopping`). 0 (the default) is the absolute rule.
     """
 
     rho: Any
     relaxation: Any
     tol_primal: Any
     tol_dual: Any
+    tol_rel: Any
 
 
 def _finite(name: str, value: Any, low: float, high: float, *, open_low: bool = True) -> None:
@@ -65,6 +74,7 @@ def solver_params(
     relaxation: Any = 1.0,
     tol_primal: Any = DEFAULT_TOL,
     tol_dual: Any = DEFAULT_TOL,
+    tol_rel: Any = DEFAULT_TOL_REL,
     dtype: Any = None,
 ) -> SolverParams:
     """Validated :class:`SolverParams` for ``n_objectives`` objectives.
@@ -72,13 +82,19 @@ def solver_params(
     ``rho``: a float (every objective) or one value per objective, positive and
     finite (default 1.0: eq.opt_ro's rho* itself); ``relaxation`` in (0, 2)
     (default 1.0, the paper); ``tol_primal``, ``tol_dual`` >= 0 and finite
-    (default 1e-6). Each may carry leading batch axes (a parameter sweep: a
+    (default 1e-6); ``tol_rel`` >= 0 and finite (default 0). Each may carry leading batch axes (a parameter sweep: a
     ``rho`` of shape (P, J) with ``relaxation`` of shape (P,)), to be vmapped
     over. ValueError naming the field otherwise; traced values are not checked.
     """
     dt = jnp.result_type(float) if dtype is None else dtype
     J = int(n_objectives)
-    vals = {"rho": rho, "relaxation": relaxation, "tol_primal": tol_primal, "tol_dual": tol_dual}
+    vals = {
+        "rho": rho,
+        "relaxation": relaxation,
+        "tol_primal": tol_primal,
+        "tol_dual": tol_dual,
+        "tol_rel": tol_rel,
+    }
     if not any(isinstance(v, jax.core.Tracer) for v in jax.tree.leaves(vals)):
         r = np.asarray(rho, dtype=float) if not isinstance(rho, bool) else None
         if r is None:
@@ -91,9 +107,10 @@ def solver_params(
         _finite("relaxation", relaxation, 0.0, 2.0)
         _finite("tol_primal", tol_primal, 0.0, np.inf, open_low=False)
         _finite("tol_dual", tol_dual, 0.0, np.inf, open_low=False)
+        _finite("tol_rel", tol_rel, 0.0, np.inf, open_low=False)
     r = jnp.asarray(rho, dt)
     r = r[..., None] if r.ndim == 0 else r
-    rest = [jnp.asarray(v, dt) for v in (relaxation, tol_primal, tol_dual)]
+    rest = [jnp.asarray(v, dt) for v in (relaxation, tol_primal, tol_dual, tol_rel)]
     # one batch shape for every leaf, so that the result vmaps with in_axes=0
     try:
         batch = np.broadcast_shapes(r.shape[:-1], *(v.shape for v in rest))
@@ -126,4 +143,5 @@ def as_params(params: SolverParams, n_objectives: int, dtype: Any) -> SolverPara
         relaxation=jnp.asarray(params.relaxation, dtype),
         tol_primal=jnp.asarray(params.tol_primal, dtype),
         tol_dual=jnp.asarray(params.tol_dual, dtype),
+        tol_rel=jnp.asarray(params.tol_rel, dtype),
     )

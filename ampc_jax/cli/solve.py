@@ -38,7 +38,13 @@ _FLAGS = {
     "max_iter": "--max-iter",
     "tol_primal": "--tol",
     "tol_dual": "--tol",
+    "tol_rel": "--tol-rel",
 }
+
+
+def _non_negative_finite(value: float) -> None:
+    if not (np.isfinite(value) and value >= 0):
+        raise ValueError(f"value: expected a finite number >= 0, got {value!r}")
 
 
 def _resolve_problem(path: str) -> Path:
@@ -163,6 +169,7 @@ def _ignored(args: argparse.Namespace) -> list[tuple[str, list[str]]]:
                 ("--relaxation", args.relaxation is not None),
                 ("--anderson", args.anderson is not None),
                 ("--max-iter", args.max_iter is not None),
+                ("--tol-rel", args.tol_rel != 0.0),
                 ("--float32", args.float32),
             )
             if on
@@ -237,6 +244,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
                     relaxation=relaxation,
                     tol_primal=tol,
                     tol_dual=tol,
+                    tol_rel=args.tol_rel,
                     dtype=dtype,
                 )
             except ValueError as e:  # rho comes from --rho, or --rho-scale when auto
@@ -279,6 +287,8 @@ def cmd_solve(args: argparse.Namespace) -> int:
         "primal_residual": float(np.max(np.asarray(res.primal_residual))),
         "dual_residual": float(np.max(np.asarray(res.dual_residual))),
         "rho": rho_out,
+        "gap": _gap_of(res),
+        "error_bound": None,
         "solve_time_s": solve_s,
         "compile_time_s": compile_s,
     }
@@ -306,6 +316,16 @@ def cmd_solve(args: argparse.Namespace) -> int:
     ok = usable(int(res.status)) and bool(np.all(np.isfinite(u)))
     violation = _violation(data, u) if ok else float("nan")
     out["constraint_violation"] = violation
+    if ok and out["gap"] is not None:
+        if args.formulation in _DECOMPOSED and not _separable(T, data):
+            print(
+                "ampc: the objectives' agent groups leave out agents that move their "
+                "outputs: the gap bounds the distance to the decomposed problem's optimum, "
+                "not the integrated one (no error_bound)",
+                file=sys.stderr,
+            )
+        else:
+            out["error_bound"] = _error_bound(T, data, out["gap"], violation)
     at_cap = int(res.status) == Status.MAX_ITER_REACHED
     if ok and at_cap and violation > _violation_limit(args.tol):
         # the last iterate of an unconverged ADMM run that breaks a general row is no
@@ -341,6 +361,51 @@ def cmd_solve(args: argparse.Namespace) -> int:
     else:
         _print_table(out, T)
     return 0 if ok else 1
+
+
+def _gap_of(res: Any) -> float | None:
+    """The result's duality gap (``stats.gap``), or None where it has none."""
+    stats = res.stats
+    if stats is None or stats.gap is None:
+        return None
+    return float(max(float(stats.gap), 0.0))  # a gap is >= 0; below is round-off
+
+
+def _error_bound(T: Any, data: Any, gap: float, violation: float) -> float | None:
+    """||U - U*|| <= sqrt(2 gap / lambda_min(H)) (H the integrated Hessian): the
+    distance to the optimum that ``gap`` bounds, for inputs that satisfy every
+    row (None when they violate one: the bound then needs the optimum's
+    multipliers)."""
+    if not (violation <= 0.0 and np.isfinite(gap)):
+        return None
+    from ..problem import condensed_qp
+
+    H = np.asarray(condensed_qp(T, data).H, dtype=float)
+    low = float(np.linalg.eigvalsh(0.5 * (H + H.T))[0])
+    return float(np.sqrt(2.0 * gap / low)) if low > 0 else None
+
+
+def _separable(T: Any, data: Any) -> bool:
+    """Whether the objectives' local costs add up to the integrated cost (every
+    agent that moves O_j's outputs is in S_j), the premise of reading the gap
+    of a decomposed formulation as a distance to the integrated optimum."""
+    from ..admm.costs import local_costs
+    from ..problem import condensed_qp
+
+    qp = condensed_qp(T, data)
+    H_int, E_int = np.asarray(qp.H, float), np.asarray(qp.E, float)
+    H, E = np.zeros_like(H_int), np.zeros_like(E_int)
+    Hs, Es = local_costs(T, data)
+    for j in range(T.n_objectives):
+        cols = np.asarray(T.group_columns(j))
+        idx = (np.arange(T.horizon)[:, None] * T.n_u + cols[None, :]).ravel()
+        H[np.ix_(idx, idx)] += np.asarray(Hs[j], float)
+        E[idx] += np.asarray(Es[j], float)
+    scale = max(float(np.max(np.abs(H_int))), 1.0)
+    return bool(
+        np.allclose(H, H_int, rtol=1e-9, atol=1e-12 * scale)
+        and np.allclose(E, E_int, rtol=1e-9, atol=1e-12 * max(float(np.max(np.abs(E_int))), 1.0))
+    )
 
 
 def _violation_limit(tol: float) -> float:
@@ -415,6 +480,10 @@ def _print_table(out: dict[str, Any], T: Any) -> None:
         return "n/a" if v is None else f"{v:.3g}"
 
     print(f"residuals    primal {num(out['primal_residual'])}  dual {num(out['dual_residual'])}")
+    if out.get("gap") is not None:
+        bound = out.get("error_bound")
+        within = "" if bound is None else f"  (inputs within {num(bound)} of the optimum)"
+        print(f"gap          {num(out['gap'])}{within}")
     if out["rho"]:
         print("rho          " + "  ".join(f"{k}={num(v)}" for k, v in out["rho"].items()))
     print(
@@ -500,6 +569,15 @@ def add_solve_command(sub: Any) -> None:
         default=TOL_DEFAULT,
         help="eps_r = eps_s of the stopping rule (paper eq. Convergence), absolute, on "
         f"squared residual norms in the constraint rows' units (default: {TOL_DEFAULT:g})",
+    )
+    p.add_argument(
+        "--tol-rel",
+        type=arg_type(_non_negative_finite),
+        default=0.0,
+        help="relative tolerance eps_rel of the stopping rule (after OSQP): a residual "
+        "may also be eps_rel times the size of the iterate and right-hand sides it "
+        "compares; the result's duality gap (JSON 'gap', 'error_bound') says how close "
+        "the inputs are (default: 0, the absolute rule alone)",
     )
     p.add_argument(
         "--max-iter",

@@ -73,9 +73,11 @@ from typing import Any, NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+from ..admm import stopping as stop
 from ..admm.acceleration import anderson_memory
 from ..admm.core import ADMMSolver
 from ..admm.costs import padded_costs
+from ..admm.hessian import DenseHessian
 from ..admm.layout import padded_layout
 from ..admm.linalg import block_diag, spd_inverse_dense
 from ..admm.local_qp import InnerState, LocalQP, factor, inner_rho, iterate
@@ -87,7 +89,7 @@ from ..admm.stopping import select_dual_residual
 from ..problem.data import ProblemData
 from ..problem.errors import ProblemError
 from ..problem.topology import Topology
-from ..results import SolveResult, Status
+from ..results import SolveResult, SolveStats, Status
 
 __all__ = [
     "CONSENSUS_DUAL_RESIDUALS",
@@ -134,7 +136,11 @@ class ConsensusSetup(NamedTuple):
     Zmap : (n_u, n_u) the global step's linear map (diag(1 / sum rho) or
         (2R + diag(sum rho))^-1).
     lb, ub : (N_p, n_u) bounds, to project the output.
-    relaxation, tol_primal, tol_dual : () from the :class:`SolverParams`.
+    relaxation, tol_primal, tol_dual, tol_rel : () from the :class:`SolverParams`.
+    hessian : H_j with the input weights (Formulation 1's), formed and inverted
+        (:class:`~ampc_jax.admm.hessian.DenseHessian`), for the duality gap.
+    R2 : (J, U, U) 2 R_j / m per step (the input weights' share in H_j).
+    b2 : (J,) ||b_j||^2, the data part of the relative tolerance's scale.
     """
 
     qp: LocalQP
@@ -148,6 +154,10 @@ class ConsensusSetup(NamedTuple):
     relaxation: Any
     tol_primal: Any
     tol_dual: Any
+    tol_rel: Any
+    hessian: Any
+    R2: Any
+    b2: Any
 
 
 @dataclass(frozen=True)
@@ -290,6 +300,10 @@ class ConsensusADMM(ADMMSolver):
             relaxation=p.relaxation,
             tol_primal=p.tol_primal,
             tol_dual=p.tol_dual,
+            tol_rel=p.tol_rel,
+            hessian=DenseHessian(c.H, Hinv),
+            R2=2.0 * Rj,
+            b2=jnp.sum(b * b, axis=(1, 2)),
         )
 
     # -- states -----------------------------------------------------------------------
@@ -365,8 +379,21 @@ class ConsensusADMM(ADMMSolver):
         return ConsensusState(Uj, Z, gamma, inner.s, inner.y, st.iteration + 1, primal, dual)
 
     def converged(self, setup: ConsensusSetup, state: ConsensusState) -> Any:
-        """eq.Convergence for every objective, with the local QPs' residuals."""
-        return jnp.all((state.primal <= setup.tol_primal) & (state.dual <= setup.tol_dual))
+        """eq.Convergence for every objective, with the local QPs' residuals, and
+        the relative tolerance on scale_j^2 = ||Z_j||^2 + ||b_j||^2: the sizes of
+        the consensus target and of the local rows' right-hand sides
+        (:func:`~ampc_jax.admm.stopping.converged`)."""
+        cols = jnp.asarray(padded_layout(self.topology).P.sum(axis=1), state.Z.dtype)  # (J, n_u)
+        scale2 = cols @ jnp.sum(state.Z * state.Z, axis=0) + setup.b2
+        return stop.converged(
+            state.primal,
+            state.dual,
+            setup.tol_primal,
+            setup.tol_dual,
+            setup.tol_rel,
+            scale2,
+            self.dual_rule.scale(setup.rho, scale2),
+        )
 
     # -- the map's argument, for Anderson acceleration ---------------------------------
     def point(self, state: ConsensusState) -> Any:
@@ -384,7 +411,15 @@ class ConsensusADMM(ADMMSolver):
         return state._replace(Z=out[0], gamma=out[1], s=out[2], y=out[3])
 
     def result(self, setup: ConsensusSetup, state: ConsensusState) -> SolveResult:
-        """The global inputs Z projected on the bounds, and the status."""
+        """The global inputs Z projected on the bounds, the status, and the duality
+        gap (``stats.gap``; :func:`~ampc_jax.admm.stopping.duality_gap`).
+
+        The dual point: lambda = sum_j y_j (the local QPs' row multipliers, >= 0)
+        and mu_j = gamma_j + A_j' y_j (Formulation 2: minus 2 R_j / m Z_j, the
+        input weights its local cost leaves to the global step), corrected by
+        an equal share per copy so that sum_j P_j' mu_j = Abar' lambda holds
+        exactly (it holds at the fixed point; the correction also covers rows
+        that couple agents of different groups)."""
         u = jnp.clip(state.Z, setup.lb, setup.ub)
         conv = self.converged(setup, state)
         finite = jnp.all(jnp.isfinite(u)) & jnp.all(jnp.isfinite(state.primal))
@@ -394,6 +429,7 @@ class ConsensusADMM(ADMMSolver):
             jnp.where(conv, Status.SOLVED, Status.MAX_ITER_REACHED),
         ).astype(jnp.int32)
         u = jnp.where(finite, u, jnp.zeros_like(u))
+        gap = jnp.where(finite, self._gap(setup, state, u), jnp.inf)
         return SolveResult(
             u=u,
             iterations=state.iteration,
@@ -403,4 +439,27 @@ class ConsensusADMM(ADMMSolver):
             dual_residual=state.dual,
             rho=setup.rho,
             state=state,
+            stats=SolveStats(gap=gap),
         )
+
+    def _gap(self, setup: ConsensusSetup, state: ConsensusState, u: Any) -> Any:
+        lay = padded_layout(self.topology)
+        J = lay.cols.shape[0]
+        dt = u.dtype
+        Psel = jnp.asarray(lay.P, dt)  # (J, U, n_u)
+        count = jnp.asarray(lay.P.sum(axis=(0, 1)), dt)  # copies of each input, m_(i)
+        A, y = setup.qp.A, state.y
+        Ay = jnp.einsum("jcu,jkc->jku", A, y)  # A_j' y_j on S_j's columns
+        mu = state.gamma + Ay
+        if self.center:
+            Zj = jnp.einsum("jun,kn->jku", Psel, state.Z)
+            mu = mu - jnp.einsum("juv,jkv->jku", setup.R2, Zj)
+        # sum_j P_j' mu_j = Abar' lambda, lambda = sum_j y_j: the rows' full coefficients
+        # are A_j on S_j and Aout_j outside
+        full = jnp.einsum("jun,jku->kn", Psel, Ay) + jnp.einsum("jcn,jkc->kn", setup.Aout, y)
+        miss = (full - jnp.einsum("jun,jku->kn", Psel, mu)) / jnp.where(count > 0, count, 1.0)
+        mu = mu + jnp.einsum("jun,kn->jku", Psel, miss)
+        uj = jnp.einsum("jun,kn->jku", Psel, u)
+        Au = jnp.einsum("jcu,jku->jkc", A, uj) + jnp.einsum("jcn,kn->jkc", setup.Aout, u)
+        slack = jnp.sum(y * (setup.b - Au))  # lambda'(b - Abar u)
+        return stop.duality_gap(setup.hessian, setup.E, uj.reshape(J, -1), mu.reshape(J, -1), slack)

@@ -61,6 +61,7 @@ from typing import Any, NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+from ..admm import stopping as stop
 from ..admm.acceleration import anderson_memory
 from ..admm.core import ADMMSolver
 from ..admm.costs import padded_costs
@@ -72,7 +73,7 @@ from ..admm.state import ADMMState, cold_state, shift_state, warm_start
 from ..admm.stopping import select_dual_residual
 from ..problem.data import ProblemData
 from ..problem.topology import Topology
-from ..results import SolveResult, Status
+from ..results import SolveResult, SolveStats, Status
 
 __all__ = ["DUAL_RESIDUALS", "RHO_METHODS", "LocalExplicit", "LocalSetup"]
 
@@ -108,7 +109,10 @@ class LocalSetup(NamedTuple):
     KE : (J, n) K_j^-1 E_j.
     inv_den : (n_c,) 1 / sum of rho_j over the objectives carrying each slack row.
     lb, ub : (N_p, n_u) bounds, to project the consensus output.
-    relaxation, tol_primal, tol_dual : () from the :class:`SolverParams`.
+    relaxation, tol_primal, tol_dual, tol_rel : () from the :class:`SolverParams`.
+    E : (J, n) E_j and hessian : H_j in the KKT strategy's form
+        (:mod:`ampc_jax.admm.hessian`), for the duality gap of a result.
+    b2 : (J,) ||bbar_j||^2, the data part of the relative tolerance's scale.
     """
 
     Ain: Any
@@ -122,6 +126,10 @@ class LocalSetup(NamedTuple):
     relaxation: Any
     tol_primal: Any
     tol_dual: Any
+    tol_rel: Any
+    E: Any
+    hessian: Any
+    b2: Any
 
 
 def _int_at_least(name: str, value: Any, low: int) -> int:
@@ -254,10 +262,9 @@ class LocalExplicit(ADMMSolver):
         b = jnp.moveaxis(bx[:, lay.rows], 1, 0)  # (J, N, R)
         AtA = jnp.einsum("jcu,jcv->juv", Ain, Ain)
         own = tuple(self._own(j) for j in range(J))
+        hessian = kkt.hessian(c, T)  # H_j and H_j^-1 (+ eps): the power iteration, the gap
         rho_star = RhoEstimates(
-            estimate=lambda: eq_opt_ro_power(
-                T, c, Ain, AtA, own, kkt.hessian(c, T), self.rho_iterations
-            ),
+            estimate=lambda: eq_opt_ro_power(T, c, Ain, AtA, own, hessian, self.rho_iterations),
             exact=lambda: eq_opt_ro_exact(T, c, Ain, AtA, own),
         )
         rho = self.rho_rule.rho(p.rho, rho_star)  # eq.opt_ro's rho_j* times params.rho
@@ -278,6 +285,10 @@ class LocalExplicit(ADMMSolver):
             relaxation=p.relaxation,
             tol_primal=p.tol_primal,
             tol_dual=p.tol_dual,
+            tol_rel=p.tol_rel,
+            E=c.E,
+            hessian=hessian,
+            b2=jnp.sum(b * b, axis=(1, 2)),
         )
 
     # -- states ----------------------------------------------------------------------
@@ -413,8 +424,20 @@ class LocalExplicit(ADMMSolver):
         return ADMMState(Uf.reshape(J, N, U), Z, gamma, st.iteration + 1, primal, dual)
 
     def converged(self, setup: LocalSetup, state: ADMMState) -> Any:
-        """eq.Convergence for every objective (see ``dual_residual``)."""
-        return jnp.all((state.primal <= setup.tol_primal) & (state.dual <= setup.tol_dual))
+        """eq.Convergence for every objective (see ``dual_residual``), with the
+        relative tolerance on scale_j^2 = ||Z_j||^2 + ||bbar_j||^2 (the slack and
+        the rows' right-hand sides; :func:`~ampc_jax.admm.stopping.converged`)."""
+        carried = jnp.asarray(padded_layout(self.topology).carried, state.Z.dtype)
+        scale2 = carried @ jnp.sum(state.Z * state.Z, axis=0) + setup.b2
+        return stop.converged(
+            state.primal,
+            state.dual,
+            setup.tol_primal,
+            setup.tol_dual,
+            setup.tol_rel,
+            scale2,
+            self.dual_rule.scale(setup.rho, scale2),
+        )
 
     # -- the map's argument, for Anderson acceleration ------------------------------
     def point(self, state: ADMMState) -> Any:
@@ -429,7 +452,10 @@ class LocalExplicit(ADMMSolver):
         )
 
     def result(self, setup: LocalSetup, state: ADMMState) -> SolveResult:
-        """Consensus inputs (average of the copies, projected on the bounds) and status."""
+        """Consensus inputs (average of the copies, projected on the bounds), status,
+        and the duality gap (``stats.gap``) of the inputs against the dual bound
+        of the multipliers: mu_j = Abar_j' gamma_j, lambda = sum_j gamma_j
+        (>= 0 after a step: eq.F3_dual's projection; :func:`~ampc_jax.admm.stopping.duality_gap`)."""
         T = self.topology
         lay = padded_layout(T)
         dt = setup.rho.dtype
@@ -445,8 +471,16 @@ class LocalExplicit(ADMMSolver):
             Status.NUMERICAL_ERROR,
             jnp.where(conv, Status.SOLVED, Status.MAX_ITER_REACHED),
         ).astype(jnp.int32)
+        u = jnp.where(finite, u, jnp.zeros_like(u))  # never a NaN out: status 2 says why
+        J = lay.cols.shape[0]
+        Ain = setup.Ain[:, None]  # (J, 1, R, U)
+        mu = jnp.sum(state.gamma[..., None] * Ain, axis=2).reshape(J, -1)  # Abar_j' gamma_j
+        uj = jnp.moveaxis(jnp.pad(u, ((0, 0), (0, 1)))[:, lay.cols], 1, 0)  # (J, N, U)
+        Au = jnp.sum(uj[:, :, None, :] * Ain, axis=3)  # Abar_j u_j
+        slack = jnp.sum(state.gamma * (setup.b - Au))  # lambda'(b - Abar u)
+        gap = stop.duality_gap(setup.hessian, setup.E, uj.reshape(J, -1), mu, slack)
         return SolveResult(
-            u=jnp.where(finite, u, jnp.zeros_like(u)),  # never a NaN out: status 2 says why
+            u=u,
             iterations=state.iteration,
             converged=conv & finite,
             status=status,
@@ -454,4 +488,5 @@ class LocalExplicit(ADMMSolver):
             dual_residual=state.dual,
             rho=setup.rho,
             state=state,
+            stats=SolveStats(gap=jnp.where(finite, gap, jnp.inf)),
         )

@@ -136,7 +136,8 @@ def unrolled_loss(
         return residual_loss(solver, theta, data, iterations, tol)
     rho, alpha = unpack(theta)
     dt = u_star.dtype
-    params = SolverParams(rho, alpha, jnp.zeros((), dt), jnp.zeros((), dt))
+    zero = jnp.zeros((), dt)
+    params = SolverParams(rho, alpha, zero, zero, zero)
 
     def one(d: ProblemData, us: Any) -> Any:
         u = solver.solve_fixed(d, iterations, params).u
@@ -166,7 +167,8 @@ def residual_loss(
         raise ValueError("loss: 'residual' unrolls plain ADMM; use anderson 0")
     rho, alpha = unpack(theta)
     dt = rho.dtype
-    params = SolverParams(rho, alpha, jnp.zeros((), dt), jnp.zeros((), dt))
+    zero = jnp.zeros((), dt)
+    params = SolverParams(rho, alpha, zero, zero, zero)
 
     def one(d: ProblemData) -> Any:
         setup = solver.setup(d, params)
@@ -221,6 +223,7 @@ def evaluate_points(
             jnp.full((n,), alpha, dt),
             jnp.full((n,), tol, dt),
             jnp.full((n,), tol, dt),
+            jnp.zeros((n,), dt),
         )
         out = run(data, p)
         it = np.asarray(out.iterations)

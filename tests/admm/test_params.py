@@ -15,13 +15,14 @@ def test_defaults_and_dtype():
     assert p.rho.shape == (3,) and p.relaxation.shape == ()
     np.testing.assert_array_equal(p.rho, 1.0)
     assert float(p.relaxation) == 1.0 and float(p.tol_primal) == float(p.tol_dual) == 1e-6
+    assert float(p.tol_rel) == 0.0  # the absolute rule alone, by default
     p32 = solver_params(2, rho=[0.5, 2.0], dtype=jnp.float32)
     assert all(x.dtype == jnp.float32 for x in jax.tree.leaves(p32))
 
 
 def test_batch_axes_broadcast_to_one_shape():
     p = solver_params(2, rho=np.ones((5, 2)), relaxation=np.linspace(1.0, 1.8, 5))
-    assert jax.tree.map(jnp.shape, p) == SolverParams((5, 2), (5,), (5,), (5,))
+    assert jax.tree.map(jnp.shape, p) == SolverParams((5, 2), (5,), (5,), (5,), (5,))
     q = solver_params(2, rho=0.5, relaxation=np.linspace(1.0, 1.8, 4))
     assert q.rho.shape == (4, 2)  # a scalar rho under a batched relaxation
     with pytest.raises(ValueError, match="params: batch shapes do not broadcast"):
@@ -41,6 +42,8 @@ def test_batch_axes_broadcast_to_one_shape():
         ({"tol_primal": -1e-3}, "tol_primal"),
         ({"tol_dual": float("inf")}, "tol_dual"),
         ({"tol_dual": "a"}, "tol_dual"),
+        ({"tol_rel": -1e-6}, "tol_rel"),
+        ({"tol_rel": float("nan")}, "tol_rel"),
     ],
 )
 def test_bad_values_name_the_field(kw, field):
@@ -51,7 +54,7 @@ def test_bad_values_name_the_field(kw, field):
 def test_traced_values_are_not_checked_and_as_params_casts():
     out = jax.jit(lambda r: solver_params(2, rho=r).rho)(jnp.asarray(-1.0))
     np.testing.assert_array_equal(out, [-1.0, -1.0])  # inside jit: no check (no error)
-    p = as_params(SolverParams(0.5, 1.5, 1e-3, 1e-3), 3, jnp.float32)
+    p = as_params(SolverParams(0.5, 1.5, 1e-3, 1e-3, 0.0), 3, jnp.float32)
     assert p.rho.shape == (3,) and p.rho.dtype == jnp.float32
     with pytest.raises(TypeError, match="params: expected a SolverParams"):
         as_params((1.0, 1.0, 1e-6, 1e-6), 2, jnp.float64)

@@ -426,3 +426,49 @@ def test_ill_conditioned_hessian_is_not_called_singular(capsys, tmp_path):
     assert main(["solve", str(path), "--json"]) == 2
     err = capsys.readouterr().err
     assert "numerically singular (condition number" in err and "R_(i) singular" not in err
+
+
+@pytest.fixture(scope="module")
+def slow_problem(tmp_path_factory):
+    """A generated box-only problem that needs thousands of iterations (seed 26,
+    three objectives), as a problem file, and Clarabel's optimum U*."""
+    from ampc_jax.generate import problem_dict, random_problem
+    from ampc_jax.reference import solve_reference
+
+    p = random_problem(26, 3)
+    path = tmp_path_factory.mktemp("slow") / "slow.json"
+    path.write_text(json.dumps(problem_dict(p)))
+    return path, solve_reference(p.topology, p.data(), eps=1e-12)
+
+
+@pytest.mark.parametrize("formulation", ["local_explicit", "fully_distributed", "virtual_center"])
+def test_tol_rel_stops_within_the_stated_error_bound(capsys, slow_problem, formulation):
+    """--tol with --tol-rel on a problem that needs thousands of iterations: the
+    first-step inputs are within the printed error_bound of Clarabel's optimum
+    (the bound sqrt(2 gap / lambda_min(H)) from the result's duality gap)."""
+    path, ref = slow_problem
+    out = run_json_file(
+        capsys,
+        path,
+        "--formulation",
+        formulation,
+        "--tol",
+        "1e-9",
+        "--tol-rel",
+        "1e-6",
+        "--max-iter",
+        "30000",
+    )
+    assert out["status"] == "solved" and out["iterations"] > 1000, out["iterations"]
+    assert out["gap"] > 0 and out["error_bound"] is not None
+    u0 = np.concatenate([np.asarray(v, float) for v in out["u0"].values()])  # agent order
+    err = float(np.linalg.norm(u0 - ref.u[0]))
+    assert err <= out["error_bound"], (err, out["error_bound"], out["gap"])
+
+
+def test_tol_rel_is_checked_and_the_gap_is_printed(capsys, base):
+    assert base["gap"] >= 0 and base["error_bound"] is not None
+    assert exit_code(["solve", "cruise_control", "--tol-rel", "-1"]) == 2
+    assert "ampc: error: --tol-rel: expected a finite number >= 0" in capsys.readouterr().err
+    assert main(["solve", "cruise_control", "--tol", "1e-8"]) == 0
+    assert "gap          " in capsys.readouterr().out

@@ -1,5 +1,5 @@
 """Solver parameters as data (issue "One house for the next jobs"): one compiled
-step serves every rho scale, relaxation and tolerance; it vmaps over parameter
+step serves every rho scale, relaxation and tolerance (absolute and relative); it vmaps over parameter
 points and scenarios together; and jax.grad with respect to the SolverParams
 pytree through the fixed-iteration runner matches central finite differences,
 for Local Explicit and IntegratedADMM alike."""
@@ -15,19 +15,20 @@ from ampc_jax.generate import random_problem
 
 pytestmark = pytest.mark.timeout(240)
 
-# five points that differ in every tunable: rho scale per objective, relaxation, tolerances
+# five points that differ in every tunable: rho scale per objective, relaxation,
+# absolute and relative tolerances
 POINTS = [
-    ((1.0, 1.0), 1.0, 1e-8),
-    ((0.3, 2.0), 1.5, 1e-8),
-    ((2.0, 0.5), 1.2, 1e-6),
-    ((1.0, 0.1), 1.7, 1e-9),
-    ((5.0, 5.0), 0.8, 1e-7),
+    ((1.0, 1.0), 1.0, 1e-8, 0.0),
+    ((0.3, 2.0), 1.5, 1e-8, 1e-4),
+    ((2.0, 0.5), 1.2, 1e-6, 0.0),
+    ((1.0, 0.1), 1.7, 1e-9, 1e-6),
+    ((5.0, 5.0), 0.8, 1e-7, 0.0),
 ]
 
 
-def _params(solver, rho, relaxation, tol):
+def _params(solver, rho, relaxation, tol, rel=0.0):
     r = rho if solver.n_rho == 2 else rho[0]
-    return solver.params(rho=r, relaxation=relaxation, tol_primal=tol, tol_dual=tol)
+    return solver.params(rho=r, relaxation=relaxation, tol_primal=tol, tol_dual=tol, tol_rel=rel)
 
 
 @pytest.mark.parametrize("kind", [LocalExplicit, IntegratedADMM])
