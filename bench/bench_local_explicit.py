@@ -227,7 +227,7 @@ def latency(horizon: int, n_steps: int, configs: list[str]) -> tuple[list[dict],
         if key not in programs:
             # the result's duality gap (stats.gap) is left out of the timed step,
             # as from OSQP's: a controller that does not read it does not compute it
-            # (XLA drops it), and it costs 20 us of the 210 us step at N_p = 10
+            # (XLA drops it), and it costs about 15 us of the 210 us step at N_p = 10
             def cold(op, p):
                 return solver.solve(data_of(op), p)._replace(stats=None)
 
