@@ -12,13 +12,15 @@ measurement (:func:`~ampc_jax.vehicle.plant.measure`) is this very function of
 the same seven states, so a run over the bus and a simulation differ only by
 the signals' resolution and age (docs/runtime.md, "What the bus carries").
 
-The bus vector: 13 float values in :data:`BUS_FIELDS` order, the one input of
-the compiled runtime step, of the exported artefact and of a replay.
+The bus vector: the 13 values of :class:`BusVector` in its field order, the
+one input of the compiled runtime step, of the exported artefact and of a
+replay. :data:`SIGNALS` names each field in the DBC and in the bridge's
+``latest_state()``, so no other module spells a signal or an index.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -31,54 +33,97 @@ from ..vehicle.plant import PlantState, measure
 __all__ = [
     "BUS_FIELDS",
     "MESSAGES",
+    "SIGNALS",
+    "BusSignal",
+    "BusVector",
     "bus_from_bridge",
     "bus_measurement",
     "bus_vector",
     "message_values",
 ]
 
-BUS_FIELDS = (
-    "v_x",
-    "v_y",
-    "yaw_rate",
-    "omega_FL",
-    "omega_FR",
-    "omega_RL",
-    "omega_RR",
-    "steer",
-    "a_x",
-    "a_y",
-    "driver_torque",
-    "v_ref",
-    "mu",
+
+class BusVector(NamedTuple):
+    """The 13 values the bus carries each tick, by name (SI units; wheels FL,
+    FR, RL, RR). The one record of the bus's signals: :data:`SIGNALS` gives
+    each field's DBC message and signal and its key in
+    ``can_bridge.Bridge.latest_state()``; the flat vector every compiled step,
+    artefact and replay takes is its fields in this order
+    (:meth:`as_array`, :meth:`of`)."""
+
+    v_x: Any
+    v_y: Any
+    yaw_rate: Any
+    omega_FL: Any
+    omega_FR: Any
+    omega_RL: Any
+    omega_RR: Any
+    steer: Any
+    a_x: Any
+    a_y: Any
+    driver_torque: Any
+    v_ref: Any
+    mu: Any
+
+    @classmethod
+    def of(cls, vec: Any) -> BusVector:
+        """The record viewing a flat (13,) vector (numpy or JAX; no copy of the values)."""
+        return cls(*(vec[i] for i in range(len(cls._fields))))
+
+    def as_array(self) -> np.ndarray:
+        """The flat float64 vector, fields in order."""
+        return np.array([float(v) for v in self], np.float64)
+
+    @property
+    def omega(self) -> tuple[Any, Any, Any, Any]:
+        """Wheel speeds in :data:`~ampc_jax.vehicle.params.WHEELS` order."""
+        return tuple(getattr(self, f"omega_{w}") for w in WHEELS)
+
+
+class BusSignal(NamedTuple):
+    """Where one :class:`BusVector` field travels: its DBC message and signal,
+    the bridge's ``latest_state()`` key (with the entry of a per-wheel tuple),
+    and its unit as the DBC writes it ("" for none)."""
+
+    field: str
+    message: str
+    signal: str
+    bridge_key: str
+    bridge_index: int | None
+    unit: str
+
+
+SIGNALS: tuple[BusSignal, ...] = (
+    BusSignal("v_x", "VehicleMotion", "LongSpeed", "long_speed_mps", None, "m/s"),
+    BusSignal("v_y", "VehicleMotion", "LatSpeed", "lat_speed_mps", None, "m/s"),
+    BusSignal("yaw_rate", "VehicleMotion", "YawRate", "yaw_rate_radps", None, "rad/s"),
+    *(
+        BusSignal(f"omega_{w}", "WheelSpeeds", f"WheelSpeed{w}", "wheel_speeds_radps", i, "rad/s")
+        for i, w in enumerate(WHEELS)
+    ),
+    BusSignal("steer", "SteeringState", "SteeringAngle", "steering_angle_rad", None, "rad"),
+    BusSignal("a_x", "VehicleAccel", "LongAccel", "long_accel_mps2", None, "m/s2"),
+    BusSignal("a_y", "VehicleAccel", "LatAccel", "lat_accel_mps2", None, "m/s2"),
+    BusSignal("driver_torque", "DriverDemand", "DriverTorque", "driver_torque_nm", None, "Nm"),
+    BusSignal("v_ref", "DriverDemand", "SetSpeed", "set_speed_mps", None, "m/s"),
+    BusSignal("mu", "DriverDemand", "RoadFriction", "road_friction", None, ""),
 )
-"""The bus vector's entries (SI units; wheels FL, FR, RL, RR)."""
+"""Every bus signal's names in the four places it appears (the record's field,
+the DBC's message and signal, the bridge's key), in :class:`BusVector` order."""
 
-MESSAGES: dict[str, dict[str, str]] = {
-    "VehicleMotion": {"LongSpeed": "v_x", "LatSpeed": "v_y", "YawRate": "yaw_rate"},
-    "WheelSpeeds": {
-        "WheelSpeedFL": "omega_FL",
-        "WheelSpeedFR": "omega_FR",
-        "WheelSpeedRL": "omega_RL",
-        "WheelSpeedRR": "omega_RR",
-    },
-    "SteeringState": {"SteeringAngle": "steer"},
-    "VehicleAccel": {"LongAccel": "a_x", "LatAccel": "a_y"},
-    "DriverDemand": {"DriverTorque": "driver_torque", "SetSpeed": "v_ref", "RoadFriction": "mu"},
-}
-"""The DBC's state messages: signal -> bus-vector entry."""
+BUS_FIELDS: tuple[str, ...] = BusVector._fields
+"""The bus vector's entries, :class:`BusVector`'s fields."""
 
-_BRIDGE_KEYS = {
-    "v_x": "long_speed_mps",
-    "v_y": "lat_speed_mps",
-    "yaw_rate": "yaw_rate_radps",
-    "steer": "steering_angle_rad",
-    "a_x": "long_accel_mps2",
-    "a_y": "lat_accel_mps2",
-    "driver_torque": "driver_torque_nm",
-    "v_ref": "set_speed_mps",
-    "mu": "road_friction",
-}
+
+def _messages() -> dict[str, dict[str, str]]:
+    out: dict[str, dict[str, str]] = {}
+    for sig in SIGNALS:
+        out.setdefault(sig.message, {})[sig.signal] = sig.field
+    return out
+
+
+MESSAGES: dict[str, dict[str, str]] = _messages()
+"""The DBC's state messages: signal -> bus-vector entry (derived from :data:`SIGNALS`)."""
 
 
 def bus_vector(
@@ -86,17 +131,17 @@ def bus_vector(
 ) -> np.ndarray:
     """The bus vector of a plant state and the driver's inputs (float64, exact)."""
     om = np.asarray(state.omega, np.float64)
-    vals = [state.v_x, state.v_y, state.r, *om, steer, state.a_x, state.a_y]
-    return np.array([*map(float, vals), float(driver_torque), float(v_ref), float(mu)])
+    return BusVector(
+        state.v_x, state.v_y, state.r, *om, steer, state.a_x, state.a_y, driver_torque, v_ref, mu
+    ).as_array()
 
 
 def message_values(bus: np.ndarray) -> dict[str, dict[str, float]]:
     """Per DBC message, its signals' values from a bus vector (what a sensor node sends)."""
-    idx = {name: i for i, name in enumerate(BUS_FIELDS)}
-    return {
-        msg: {sig: float(bus[idx[field]]) for sig, field in sigs.items()}
-        for msg, sigs in MESSAGES.items()
-    }
+    out: dict[str, dict[str, float]] = {}
+    for i, sig in enumerate(SIGNALS):
+        out.setdefault(sig.message, {})[sig.signal] = float(bus[i])
+    return out
 
 
 def bus_from_bridge(state: dict[str, Any]) -> tuple[np.ndarray | None, str | None]:
@@ -106,15 +151,13 @@ def bus_from_bridge(state: dict[str, Any]) -> tuple[np.ndarray | None, str | Non
     E2E stream sound) and every value is present and finite."""
     if not state.get("valid", False):
         return None, f"state invalid: {state.get('reason') or 'no reason given'}"
-    out = np.empty(len(BUS_FIELDS))
-    wheels = state.get("wheel_speeds_radps")
-    for i, name in enumerate(BUS_FIELDS):
-        if name.startswith("omega_"):
-            v = None if wheels is None else wheels[WHEELS.index(name[6:])]
-        else:
-            v = state.get(_BRIDGE_KEYS[name])
+    out = np.empty(len(SIGNALS))
+    for i, sig in enumerate(SIGNALS):
+        v = state.get(sig.bridge_key)
+        if v is not None and sig.bridge_index is not None:
+            v = v[sig.bridge_index]
         if v is None or not np.isfinite(v):
-            return None, f"state value {name} missing or not finite ({v!r})"
+            return None, f"state value {sig.field} missing or not finite ({v!r})"
         out[i] = float(v)
     return out, None
 
@@ -129,8 +172,8 @@ def bus_measurement(bus: Array, vehicle: VehicleParams) -> tuple[Measurement, Dr
     (:func:`~ampc_jax.vehicle.plant.measure` on the measured states).
     """
     bus = jnp.asarray(bus)
+    b = BusVector.of(bus)
     z = jnp.zeros((), bus.dtype)
-    ps = PlantState(z, z, z, bus[0], bus[1], bus[2], bus[3:7], bus[8], bus[9])
-    steer, mu = bus[7], bus[12]
-    meas = measure(ps, steer, jnp.zeros(4, bus.dtype), mu, vehicle)
-    return meas, DriverInputs(steer=steer, driver_torque=bus[10], v_ref=bus[11], mu=mu)
+    ps = PlantState(z, z, z, b.v_x, b.v_y, b.yaw_rate, jnp.stack(b.omega), b.a_x, b.a_y)
+    meas = measure(ps, b.steer, jnp.zeros(4, bus.dtype), b.mu, vehicle)
+    return meas, DriverInputs(steer=b.steer, driver_torque=b.driver_torque, v_ref=b.v_ref, mu=b.mu)

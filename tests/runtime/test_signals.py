@@ -22,6 +22,8 @@ import can_bridge
 from ampc_jax.runtime.signals import (
     BUS_FIELDS,
     MESSAGES,
+    SIGNALS,
+    BusVector,
     bus_from_bridge,
     bus_measurement,
     bus_vector,
@@ -289,3 +291,25 @@ def test_missing_wheel_speeds_name_a_wheel() -> None:
     absent = {k: v for k, v in _valid_state().items() if k != "road_friction"}
     vec, why = bus_from_bridge(absent)
     assert vec is None and " mu " in why
+
+
+def test_the_signal_table_names_the_dbc_and_the_bridge() -> None:
+    """One record (BusVector, SIGNALS) names every signal in the DBC (read by
+    cantools) and in the bridge's latest_state(); nothing else spells them."""
+    db = cantools.database.load_file(can_bridge.dbc_path())
+    state = can_bridge.Bridge("slcan-pty:", period_ms=50).latest_state()
+    assert tuple(s.field for s in SIGNALS) == BusVector._fields == BUS_FIELDS
+    for sig in SIGNALS:
+        dbc = db.get_message_by_name(sig.message).get_signal_by_name(sig.signal)
+        assert (dbc.unit or "") == sig.unit, sig
+        assert sig.bridge_key in state, sig
+    payload = {
+        m.name: {s.name for s in m.signals if s.name not in ("CRC", "Counter")}
+        for m in db.messages
+        if m.name in MESSAGES
+    }
+    assert {m: set(sigs) for m, sigs in MESSAGES.items()} == payload
+    # the record views a flat vector by name, and back
+    rec = BusVector.of(BUS)
+    assert rec.v_x == BUS[IDX["v_x"]] and rec.omega[2] == BUS[IDX["omega_RL"]]
+    np.testing.assert_array_equal(rec.as_array(), BUS)
