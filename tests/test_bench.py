@@ -416,3 +416,20 @@ def test_bench_peers(tmp_path):
     assert res["latency"]["10"]["target"]["verdict"] in ("PASS", "MISS"), res["latency"]
     assert res["throughput"]["10"]["accuracy"]["DAQP"]["err_max"] < 1e-2, res["throughput"]
     assert res["throughput"]["peak_flops"]["float64"] > 0, res["throughput"]
+
+
+@pytest.mark.timeout(150)
+def test_bench_compile(tmp_path):
+    """ampc solve cold (an empty cache directory) and warm in two fresh processes: the
+    command's default compilation cache (AMPC_COMPILATION_CACHE) is filled by the first
+    run and every program of the second is loaded from it (JAX's cache-hit events)."""
+    path = tmp_path / "compile.json"
+    out = run_bench("bench_compile.py", "--smoke", "--out", str(path), timeout=140)
+    assert "| command | cold: first result (s) | XLA compile (s) | programs |" in out, out
+    (row,) = _rows(out, "solve |")
+    assert row[-1] == "0/0", row  # both runs exited 0
+    doc = json.loads(path.read_text())
+    solve = doc["results"]["commands"]["solve"]
+    assert solve["cold"]["programs"] > 0 and solve["cold"]["cache_hits"] == 0, solve
+    assert solve["warm"]["cache_hits"] == solve["warm"]["programs"] > 0, solve
+    assert doc["results"]["targets"]["program"] in ("PASS", "MISS"), doc["results"]

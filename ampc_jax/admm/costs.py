@@ -10,6 +10,7 @@ them unpadded, one per objective. Every ADMM formulation starts from these.
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any, NamedTuple
 
 import jax
@@ -111,6 +112,10 @@ def unpad_matrix(M: Any, n_u: int, U: int, horizon: int) -> Any:
     return M.reshape(horizon * n_u, horizon * n_u)
 
 
+# Jitted (the topology static): eagerly (:func:`singular_hessians`, ``ampc solve``'s
+# checks) one compiled program instead of about 60 single operations, each compiled
+# alone (2 s of ``ampc solve``'s start, ``bench/bench_compile.py``).
+@partial(jax.jit, static_argnums=0)
 def local_costs(topology: Topology, data: ProblemData) -> tuple[tuple, tuple]:
     """(H_j, E_j) for every objective (eq.F3_primal_1, NOTES items 8, 18, 19)."""
     lay = padded_layout(topology)

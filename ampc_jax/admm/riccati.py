@@ -38,6 +38,7 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple
 
+import jax
 import jax.numpy as jnp
 
 __all__ = [
@@ -118,47 +119,53 @@ def factor(A: Any, Bu: Any, Qx: Any, Bk: Any, horizon: int) -> RiccatiFactor:
     A : (n_x, n_x); Bu : (J, n_x, U); Qx : (J, n_x, n_x) C_j' 2Q_j C_j;
     Bk : (J, U, U) the per-step input block (positive definite).
     """
-    P = Qx
-    Ginv, L = [None] * horizon, [None] * horizon
-    for k in reversed(range(horizon)):
+
+    def back(P: Any, _: Any) -> tuple[Any, tuple[Any, Any]]:
         PB = _mm(P, Bu)  # (J, n_x, U)
-        G = _sym(Bk + _mtm(Bu, PB))
-        Gi = unrolled_spd_inverse(G)
+        Gi = unrolled_spd_inverse(_sym(Bk + _mtm(Bu, PB)))
         APB = _mtm(A, PB)  # A' P B  (J, n_x, U)
         Lk = _mm(Gi, jnp.swapaxes(APB, -1, -2))  # G^-1 B' P A  (J, U, n_x)
-        Ginv[k], L[k] = Gi, Lk
-        if k > 0:
-            P = _sym(Qx + _mtm(A, _mm(P, A)) - _mm(APB, Lk))
-    return RiccatiFactor(A=A, Bu=Bu, Ginv=jnp.stack(Ginv), L=jnp.stack(L))
+        return _sym(Qx + _mtm(A, _mm(P, A)) - _mm(APB, Lk)), (Gi, Lk)
+
+    _, (Ginv, L) = _scan(back, Qx, None, horizon, reverse=True)
+    return RiccatiFactor(A=A, Bu=Bu, Ginv=Ginv, L=L)
+
+
+def _scan(body: Any, carry: Any, xs: Any, length: int, reverse: bool = False) -> Any:
+    """``lax.scan`` over the horizon. Rule: the horizon is rolled, not unrolled;
+    reason: a rolled sweep compiles once whatever N_p (an unrolled one was
+    4 N_p small kernels per sweep, and a batch-1 step whose loop XLA:CPU
+    compiles into one function took 88 s to compile at N_p = 10,
+    ``bench/bench_compile.py``), and a sweep's loop is small enough for
+    XLA:CPU to run it as one kernel (``ampc_jax`` sets the threshold)."""
+    return jax.lax.scan(body, carry, xs, length=length, reverse=reverse)
 
 
 def solve(f: RiccatiFactor, v: Any) -> Any:
     """K_j^-1 v_j for v (J, N_p U) (or (J, p, N_p U): p right-hand sides)."""
     N, J, U, nx = f.L.shape
     lead = v.shape[1:-1]
-    vk = v.reshape(J, *lead, N, U)
-    bu = f.Bu.reshape(J, *(1,) * len(lead), nx, U)
+    ones = (1,) * len(lead)
+    vk = jnp.moveaxis(v.reshape(J, *lead, N, U), -2, 0)  # (N, J, *lead, U)
+    bu = f.Bu.reshape(J, *ones, nx, U)
+    Ginv = f.Ginv.reshape(N, J, *ones, U, U)
+    L = f.L.reshape(N, J, *ones, U, nx)
+    zero = jnp.zeros((J, *lead, nx), v.dtype)
 
-    def at(M: Any, k: int) -> Any:  # per-step matrix, broadcast over the p axis
-        return M[k].reshape(J, *(1,) * len(lead), *M.shape[2:])
+    def back(p: Any, x: tuple) -> tuple[Any, Any]:
+        Gk, Lk, vk = x
+        e = _mtv(bu, p) - vk
+        return _mtv(f.A, p) - _mtv(Lk, e), _mv(Gk, e)
 
-    p = None
-    d = [None] * N
-    for k in reversed(range(N)):
-        e = -vk[..., k, :] if p is None else _mtv(bu, p) - vk[..., k, :]
-        d[k] = _mv(at(f.Ginv, k), e)
-        if k > 0:
-            Lte = _mtv(at(f.L, k), e)
-            p = -Lte if p is None else _mtv(f.A, p) - Lte
-    x = None
-    u = []
-    for k in range(N):
-        uk = -d[k] if x is None else -(_mv(at(f.L, k), x) + d[k])
-        u.append(uk)
-        if k < N - 1:
-            Bx = _mv(bu, uk)
-            x = Bx if x is None else _mv(f.A, x) + Bx
-    return jnp.stack(u, axis=-2).reshape(v.shape)
+    _, d = _scan(back, zero, (Ginv, L, vk), N, reverse=True)
+
+    def fwd(x: Any, y: tuple) -> tuple[Any, Any]:
+        Lk, dk = y
+        uk = -(_mv(Lk, x) + dk)
+        return _mv(f.A, x) + _mv(bu, uk), uk
+
+    _, u = _scan(fwd, zero, (L, d), N)
+    return jnp.moveaxis(u, 0, -2).reshape(v.shape)
 
 
 def linear_cost(A: Any, Bu: Any, Qx: Any, Cr: Any, x0: Any, w: Any) -> Any:
@@ -171,49 +178,52 @@ def linear_cost(A: Any, Bu: Any, Qx: Any, Cr: Any, x0: Any, w: Any) -> Any:
     Returns (J, N_p U).
     """
     N = w.shape[0]
-    x = x0
-    g = []
-    for k in range(N):
-        x = _mv(A, x) + w[k]  # free response x^(k+1), shared by every objective
-        g.append(_mv(Qx, x) - Cr[:, k])  # C' 2Q (C x^(k+1) - ref_k)
+
+    def fwd(x: Any, y: tuple) -> tuple[Any, Any]:
+        wk, crk = y
+        x = _mv(A, x) + wk  # free response x^(k+1), shared by every objective
+        return x, _mv(Qx, x) - crk  # C' 2Q (C x^(k+1) - ref_k)
+
+    _, g = _scan(fwd, x0, (w, jnp.moveaxis(Cr, 1, 0)), N)
     return _adjoint(A, Bu, g)
 
 
-def _adjoint(A: Any, Bu: Any, g: list) -> Any:
-    """(Y_u' applied) E_l = Bu' mu_l, mu_l = g_l + A' mu_(l+1), mu_N = 0; g_l (..., n_x)."""
-    N = len(g)
-    mu = None
-    out = [None] * N
-    for k in reversed(range(N)):
-        mu = g[k] if mu is None else g[k] + _mtv(A, mu)
-        out[k] = _mtv(Bu, mu)
-    return jnp.concatenate(out, axis=-1)
+def _adjoint(A: Any, Bu: Any, g: Any) -> Any:
+    """(Y_u' applied) E_l = Bu' mu_l, mu_l = g_l + A' mu_(l+1), mu_N = 0; g (N, ..., n_x)
+    stacked over the horizon; returns (..., N U)."""
+    N = g.shape[0]
+
+    def back(mu: Any, gk: Any) -> tuple[Any, Any]:
+        mu = gk + _mtv(A, mu)
+        return mu, _mtv(Bu, mu)
+
+    _, out = _scan(back, jnp.zeros_like(g[0]), g, N, reverse=True)
+    return jnp.moveaxis(out, 0, -2).reshape(*out.shape[1:-1], -1)
 
 
 def hessian_apply(A: Any, Bu: Any, Qx: Any, Bh: Any, u: Any) -> Any:
     """H_j u = Y_u' 2Qbar Y_u u + (I (x) Bh) u for u (J, p, N_p U) (p vectors each):
     a forward sweep of the model from x_0 = 0 and an adjoint sweep back."""
     J, P, n = u.shape
-    U = Bu.shape[-1]
+    nx, U = Bu.shape[-2:]
     N = n // U
     uk = u.reshape(J, P, N, U)
     bu = Bu[:, None]
     qx = Qx[:, None]
-    x = None
-    g = []
-    for k in range(N):
-        Bx = _mv(bu, uk[:, :, k])
-        x = Bx if x is None else _mv(A, x) + Bx  # x_{k+1}
-        g.append(_mv(qx, x))
-    Hu = _adjoint(A, bu, g) + _mv(Bh[:, None, None], uk).reshape(J, P, n)
-    return Hu
+
+    def fwd(x: Any, ukk: Any) -> tuple[Any, Any]:
+        x = _mv(A, x) + _mv(bu, ukk)  # x_{k+1}
+        return x, _mv(qx, x)
+
+    _, g = _scan(fwd, jnp.zeros((J, P, nx), u.dtype), jnp.moveaxis(uk, 2, 0), N)
+    return _adjoint(A, bu, g) + _mv(Bh[:, None, None], uk).reshape(J, P, n)
 
 
 def trace_gram(A: Any, Bu: Any, Qx: Any, horizon: int) -> Any:
     """(J,) trace(Y_u' 2Qbar Y_u) = sum_l trace(Bu' S_(N-1-l) Bu), S_m = sum_(i<=m) A'^i Qx A^i."""
-    S = Qx
-    tr = jnp.sum(Bu * _mm(S, Bu), axis=(-2, -1))
-    for _ in range(horizon - 1):
-        S = Qx + _mtm(A, _mm(S, A))
-        tr = tr + jnp.sum(Bu * _mm(S, Bu), axis=(-2, -1))
-    return tr
+
+    def body(S: Any, _: Any) -> tuple[Any, Any]:
+        return Qx + _mtm(A, _mm(S, A)), jnp.sum(Bu * _mm(S, Bu), axis=(-2, -1))
+
+    _, tr = _scan(body, Qx, None, horizon)
+    return jnp.sum(tr, axis=0)

@@ -4,11 +4,20 @@
 Errors go to stderr as ``ampc: error: --flag: message`` with exit code 2 (bad
 input); library warnings as ``ampc: warning: ...`` lines. Nothing in the
 library imports this package.
+
+Every command keeps JAX's persistent compilation cache in the user's cache
+directory (:func:`cache_dir`): a command's second run loads its compiled
+programs instead of compiling them (``bench/bench_compile.py`` measures both).
+``--compilation-cache DIR`` or ``AMPC_COMPILATION_CACHE=DIR`` moves it,
+``--no-compilation-cache`` or ``AMPC_COMPILATION_CACHE=off`` turns it off, and a
+cache JAX was already given (``JAX_COMPILATION_CACHE_DIR``) is left as it is.
 """
 
 from __future__ import annotations
 
+import os
 import sys
+from pathlib import Path
 
 from .. import __version__
 from .args import Parser, fail
@@ -18,7 +27,58 @@ from .solve import add_solve_command
 from .sweep import add_sweep_command
 from .tune import add_tune_command
 
-__all__ = ["build_parser", "main"]
+__all__ = ["CACHE_ENV", "build_parser", "cache_dir", "main"]
+
+CACHE_ENV = "AMPC_COMPILATION_CACHE"
+"""Environment variable: the compilation cache's directory, or ``off``."""
+
+CACHE_OFF = ("off", "0", "none", "false", "no")
+
+CACHE_MIN_COMPILE_S = 0.0
+"""Programs that compiled faster than this are not cached. Rule: cache every
+program; reason: a command's programs are few and small (a cached one loads in
+milliseconds), and the small ones add up (``ampc solve`` compiles 29 programs,
+24 of them under 0.1 s each; ``bench/bench_compile.py``)."""
+
+
+def cache_dir(flag: str | None = None, env: dict[str, str] | None = None) -> Path | None:
+    """Where ``ampc`` keeps compiled programs: ``flag`` (``--compilation-cache``),
+    else ``$AMPC_COMPILATION_CACHE``, else ``$XDG_CACHE_HOME/ampc-jax/xla``
+    (``~/.cache/ampc-jax/xla``); None when turned off (``off``)."""
+    env = os.environ if env is None else env
+    value = flag if flag is not None else env.get(CACHE_ENV)
+    if value is not None and value.strip().lower() in CACHE_OFF:
+        return None
+    if value:
+        return Path(value).expanduser()
+    base = env.get("XDG_CACHE_HOME") or str(Path("~/.cache").expanduser())
+    return Path(base) / "ampc-jax" / "xla"
+
+
+def _use_compilation_cache(args: object) -> None:
+    """Point JAX's persistent compilation cache at :func:`cache_dir` (before the first
+    compilation). A directory that cannot be created turns the cache off with a
+    warning line; a cache set through JAX's own ``JAX_COMPILATION_CACHE_DIR`` wins
+    unless the flag names one."""
+    flag = getattr(args, "compilation_cache", None)
+    if getattr(args, "no_compilation_cache", False):
+        flag = "off"
+    if flag is None and os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return
+    path = cache_dir(flag)
+    import jax
+
+    if path is None:
+        jax.config.update("jax_enable_compilation_cache", False)
+        return
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        print(f"ampc: warning: compilation cache off: {path}: {exc.strerror}", file=sys.stderr)
+        jax.config.update("jax_enable_compilation_cache", False)
+        return
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", CACHE_MIN_COMPILE_S)
 
 
 def build_parser() -> Parser:
@@ -27,6 +87,18 @@ def build_parser() -> Parser:
         description="Multi-objective agent-based MPC (consensus ADMM, Local Explicit) in JAX.",
     )
     parser.add_argument("--version", action="version", version=f"ampc-jax {__version__}")
+    cache = parser.add_mutually_exclusive_group()
+    cache.add_argument(
+        "--compilation-cache",
+        metavar="DIR",
+        help=f"keep compiled programs in DIR (default: ${CACHE_ENV}, else "
+        "$XDG_CACHE_HOME/ampc-jax/xla or ~/.cache/ampc-jax/xla)",
+    )
+    cache.add_argument(
+        "--no-compilation-cache",
+        action="store_true",
+        help=f"compile every program afresh, as {CACHE_ENV}=off does (default: the cache on)",
+    )
     sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
     add_solve_command(sub)
     add_simulate_commands(sub)
@@ -40,6 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run ``ampc`` with ``argv`` (default: the process's); returns the exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    _use_compilation_cache(args)
     try:
         return int(args.func(args))
     except KeyboardInterrupt:

@@ -15,8 +15,10 @@ integrated solver runs on that form, the reference solvers
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any, NamedTuple
 
+import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
@@ -66,6 +68,11 @@ def merged_data(data: ProblemData) -> ProblemData:
     )
 
 
+# Jitted (the topology static): called eagerly (the reference solvers, ``ampc solve``'s
+# checks) it is one compiled program instead of about 20 single operations, each a
+# compilation of its own (0.7 s of ``ampc solve``'s start, ``bench/bench_compile.py``);
+# inside a caller's ``jit`` it is inlined.
+@partial(jax.jit, static_argnums=0)
 def condensed_qp(topology: Topology, data: ProblemData) -> CondensedQP:
     """The integrated MPC as a condensed QP (jittable), from :mod:`ampc_jax.prediction`."""
     m = merged_data(data)
