@@ -1,8 +1,8 @@
-"""eq.opt_ro: the penalty rho_j* of each objective, exactly or by power iteration.
+"""eq.opt_ro: the penalty rho_j* of each objective, exactly or by Lanczos steps.
 
 rho_j* = 1 / sqrt(lambda_1 lambda_n) of Abar_j H_j^-1 Abar_j' (lambda_1, lambda_n
 the smallest non-zero and the largest eigenvalue), for every objective of the
-padded layout: estimated by power iteration on the pencil (H_j, Abar_j'Abar_j)
+padded layout: estimated by Lanczos steps on the pencil (H_j, Abar_j'Abar_j)
 (:func:`eq_opt_ro_power`; H_j applied as the KKT strategy holds it,
 :mod:`~.hessian`), or exactly (:func:`eq_opt_ro_exact`, an eigendecomposition,
 several times slower on XLA:CPU). Objectives whose rows A_in,j are
@@ -34,6 +34,7 @@ from .linalg import apply_blocks, eye_like, spd_inverse
 
 __all__ = [
     "RHO_RULES",
+    "RHO_STEPS",
     "ExactRho",
     "GivenRho",
     "PowerRho",
@@ -41,18 +42,21 @@ __all__ = [
     "eq_opt_ro_exact",
     "eq_opt_ro_power",
     "extreme_eigenvalues",
+    "lanczos_extremes",
     "optimal_rho",
     "power_rho",
     "power_rho_riccati",
     "power_rho_woodbury",
+    "rho_from_ritz",
     "scaled_hessian",
     "select_rho",
+    "tridiagonal_max",
 ]
 
 
 # -- how rho_j is chosen: strategies behind one interface, chosen by name ------------
 class RhoEstimates(NamedTuple):
-    """A formulation's automatic rho_j*, two ways: ``estimate()`` (power iteration)
+    """A formulation's automatic rho_j*, two ways: ``estimate()`` (an iterative estimate)
     and ``exact()`` (an eigendecomposition; None where the formulation has none)."""
 
     estimate: Callable[[], Any]
@@ -61,7 +65,8 @@ class RhoEstimates(NamedTuple):
 
 @dataclass(frozen=True)
 class PowerRho:
-    """rho_j = ``params.rho[j]`` times the automatic rho_j*, estimated by power iteration."""
+    """rho_j = ``params.rho[j]`` times the automatic rho_j*, estimated iteratively (Lanczos
+    steps for eq.opt_ro, power iteration for Formulations 1 and 2's rho)."""
 
     name: str = "power"
     needs_H: bool = False  # the formed H_j (only the exact eigendecomposition needs it)
@@ -93,6 +98,15 @@ class GivenRho:
     def rho(self, factor: Any, rho_star: RhoEstimates) -> Any:
         return factor
 
+
+RHO_STEPS = 4
+"""Default Lanczos steps of eq.opt_ro's estimate (each applies H_j and H_j^-1 once
+per objective). Rule: 4; reason: as close to the exact rho_j* as 8 steps of the
+former power iteration (worst 6.9 % against 8.7 % on tests/admm/test_rho.py's
+problems; 4.2 % and 3.6 % on bench/bench_peers.py's cruise drives at N_p = 10
+and 20) at half the products: eq.opt_ro was 62 % to 76 % of a batched setup,
+and the Riccati setup fell from 29.7 to 20.5 us a case-step (issue 30's
+breakdown, docs/bench_peers.md)."""
 
 RHO_RULES: dict[str, Any] = {r.name: r for r in (PowerRho(), ExactRho(), GivenRho())}
 """``rho_method`` name -> strategy."""
@@ -153,8 +167,8 @@ def eq_opt_ro_power(
     hessian: Any,
     iterations: int = 8,
 ) -> Any:
-    """(J,) eq.opt_ro's rho_j*, its extreme eigenvalues by ``iterations`` steps of
-    power iteration on the pencil (H_j, Abar_j'Abar_j), H_j and H_j^-1 applied
+    """(J,) eq.opt_ro's rho_j*, its extreme eigenvalues by ``iterations`` Lanczos
+    steps on the pencil (H_j, Abar_j'Abar_j), H_j and H_j^-1 applied
     by ``hessian`` (:mod:`~.hessian`: dense, Woodbury or Riccati).
 
     c : the padded costs; Ain : (J, R, U) per-step rows A_in,j in the layout;
@@ -246,35 +260,29 @@ def scaled_hessian(H: Any, AtA: Any, horizon: int) -> Any:
     return G if batched else G[0]
 
 
-def rho_from_quotients(rq: Any) -> Any:
-    """sqrt(mu_min mu_max) from the two chains' Rayleigh quotients (J, 2), mu_min
-    floored at eps mu_max (a singular H_j)."""
-    mu_max = jnp.maximum(rq[:, 0], rq[:, 1])
-    mu_min = jnp.maximum(jnp.minimum(rq[:, 0], rq[:, 1]), jnp.finfo(rq.dtype).eps * mu_max)
-    return jnp.sqrt(mu_min * mu_max)
-
-
 def power_start(mask: Any, dtype: Any) -> Any:
-    """The two chains' fixed start (J, 2, n): positive entries on real inputs."""
+    """The two chains' fixed start (J, 2, n): positive entries on real inputs
+    (zero on padding, which the operators leave decoupled)."""
     J, n = mask.shape
     v0 = np.random.default_rng(12345).uniform(0.5, 1.5, n)
     return jnp.broadcast_to((jnp.asarray(v0, dtype) * mask)[:, None, :], (J, 2, n))
 
 
 def power_rho(H: Any, Hinv: Any, LamB: Any, mask: Any, iterations: int) -> Any:
-    """eq.opt_ro with mu_min, mu_max estimated by power iteration.
+    """eq.opt_ro with mu_min, mu_max estimated by Lanczos steps on the pencil.
 
     mu are the eigenvalues of the pencil H x = mu Lambda x, Lambda = Abar'Abar
     (= I (x) A_in,j'A_in,j, positive definite for full column rank rows): the
     same as those of G = L^-1 H L^-T of :func:`optimal_rho`, without forming
-    L. mu_max comes from iterating x <- Lambda^-1 H x, mu_min from
-    x <- H^-1 Lambda x; each estimate is the Rayleigh quotient
-    x'Hx / x'Lambda x, which lies inside [mu_min, mu_max], so mu_max is under-
-    and mu_min over-estimated. rho only sets the convergence rate (the
-    solution does not depend on it): ``rho_iterations`` = 8 gave rho within
-    10 % of the exact eigendecomposition on the generated problems (worst
-    8.7 %, ``test_power_rho_close_to_exact``) and within 1 % on the shipped
-    cruise example (``examples/cruise_control.json``: 0.95 % and 0.06 %).
+    L. mu_max is the largest eigenvalue of Lambda^-1 H, 1 / mu_min that of
+    H^-1 Lambda, both self-adjoint in the Lambda inner product; each estimate
+    is the largest Ritz value of ``iterations`` Lanczos steps
+    (:func:`lanczos_extremes`), which lies inside the spectrum, so mu_max is
+    under- and mu_min over-estimated. rho only sets the convergence rate (the
+    solution does not depend on it): 4 steps (:data:`RHO_STEPS`) gave rho
+    within 10 % of the exact eigendecomposition on the generated problems
+    (worst 6.9 %, ``test_power_rho_close_to_exact``), as 8 steps of power
+    iteration did (8.7 %), with half the operator products.
 
     H, Hinv : (J, n, n); LamB : (J, U, U) the per-step block of Lambda;
     mask : (J, n) 1 on real entries. The two operators are formed (for one
@@ -286,22 +294,18 @@ def power_rho(H: Any, Hinv: Any, LamB: Any, mask: Any, iterations: int) -> Any:
     LiH = jnp.swapaxes(apply_blocks(spd_inverse(LamB), H), 1, 2)  # Lambda^-1 H
     HiL = apply_blocks(LamB, Hinv)  # H^-1 Lambda
     ops = jnp.stack([LiH, HiL], axis=1)  # (J, 2, n, n): one chain each
-    v = power_start(mask, H.dtype)
 
-    def body(_: Any, v: Any) -> Any:
-        v = jnp.einsum("jpab,jpb->jpa", ops, v)
-        return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
+    def op(v: Any) -> Any:
+        return jnp.einsum("jpab,jpb->jpa", ops, v)
 
-    v = jax.lax.fori_loop(0, iterations, body, v)
-    num = jnp.einsum("jpa,jab,jpb->jp", v, H, v)
-    return rho_from_quotients(num / jnp.sum(v * apply_blocks(LamB, v), -1))
+    return rho_from_ritz(lanczos_extremes(op, LamB, power_start(mask, H.dtype), iterations))
 
 
 def power_rho_woodbury(hessian: Any, LamB: Any, mask: Any, iterations: int) -> Any:
     """:func:`power_rho` with H = Y_u' Q2 Y_u + I (x) BH applied and inverted in
     the Woodbury form (:class:`~.hessian.WoodburyHessian`).
 
-    No n x n matrix is formed or factorised: each iteration applies::
+    No n x n matrix is formed or factorised: each step applies::
 
         Lambda^-1 H x = (I (x) Lambda_B^-1) [(I (x) BH) x + Y_u'(Q2 (Y_u x))]
         H^-1 Lambda x = (I (x) BH^-1) Lambda x - W'(P (W Lambda x))
@@ -313,16 +317,12 @@ def power_rho_woodbury(hessian: Any, LamB: Any, mask: Any, iterations: int) -> A
     """
     Laminv = spd_inverse(LamB)
 
-    def body(_: Any, v: Any) -> Any:
+    def op(v: Any) -> Any:
         up = apply_blocks(Laminv, hessian.apply(v[:, :1]))  # Lambda^-1 H v
         down = hessian.solve(apply_blocks(LamB, v[:, 1:]))  # H^-1 Lambda v
-        v = jnp.concatenate([up, down], axis=1)
-        return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
+        return jnp.concatenate([up, down], axis=1)
 
-    v = power_start(mask, LamB.dtype)
-    v = jax.lax.fori_loop(0, iterations, body, v)
-    rq = jnp.sum(v * hessian.apply(v), -1) / jnp.sum(v * apply_blocks(LamB, v), -1)
-    return rho_from_quotients(rq)
+    return rho_from_ritz(lanczos_extremes(op, LamB, power_start(mask, LamB.dtype), iterations))
 
 
 def power_rho_riccati(hessian: Any, LamB: Any, mask: Any, iterations: int) -> Any:
@@ -336,16 +336,121 @@ def power_rho_riccati(hessian: Any, LamB: Any, mask: Any, iterations: int) -> An
     """
     Laminv = spd_inverse(LamB)
 
-    def body(_: Any, v: Any) -> Any:
+    def op(v: Any) -> Any:
         up = apply_blocks(Laminv, hessian.apply(v[:, :1]))  # Lambda^-1 H v
         down = hessian.solve(apply_blocks(LamB, v[:, 1:]))  # H^-1 Lambda v
-        v = jnp.concatenate([up, down], axis=1)
-        return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
+        return jnp.concatenate([up, down], axis=1)
 
-    v = power_start(mask, LamB.dtype)
-    v = jax.lax.fori_loop(0, iterations, body, v)
-    rq = jnp.sum(v * hessian.apply(v), -1) / jnp.sum(v * apply_blocks(LamB, v), -1)
-    return rho_from_quotients(rq)
+    return rho_from_ritz(lanczos_extremes(op, LamB, power_start(mask, LamB.dtype), iterations))
+
+
+def lanczos_extremes(op: Any, LamB: Any, v: Any, steps: int) -> Any:
+    """(J, 2) the largest Ritz value of each chain after ``steps`` Lanczos steps.
+
+    ``op`` maps (J, 2, n) to (J, 2, n): chain 0 applies Lambda^-1 H, chain 1
+    H^-1 Lambda, both self-adjoint in the Lambda inner product <x, y> = x'Lambda y
+    (Lambda = I (x) LamB). From the start ``v`` (J, 2, n) the three-term recurrence
+    builds the tridiagonal T_k = Q' Lambda op(Q) of the Krylov space (no
+    reorthogonalisation: a lost orthogonality only repeats a converged Ritz
+    value); its largest eigenvalue (:func:`tridiagonal_max`) lies inside the
+    spectrum, below the largest eigenvalue of the operator (mu_max for chain 0,
+    1 / mu_min for chain 1). A step whose residual vanishes (the Krylov space
+    is invariant: n_j < ``steps``, or an exact eigenvector) ends its chain
+    there (q = 0: the remaining steps add zeros to T, which leave its largest
+    eigenvalue as it is).
+    """
+
+    def inner(x: Any, y: Any) -> Any:
+        return jnp.sum(x * apply_blocks(LamB, y), axis=-1)
+
+    eps = jnp.finfo(v.dtype).eps
+    q = v / jnp.sqrt(inner(v, v))[..., None]
+    q_prev = jnp.zeros_like(q)
+    beta = jnp.zeros(q.shape[:-1], q.dtype)
+    alphas, betas = [], []
+    for _ in range(steps):  # steps is small and static: unrolled
+        w = op(q)
+        alpha = inner(w, q)
+        w = w - alpha[..., None] * q - beta[..., None] * q_prev
+        nrm = jnp.sqrt(jnp.maximum(inner(w, w), 0.0))
+        alive = nrm > jnp.sqrt(eps) * jnp.abs(alpha)
+        beta = jnp.where(alive, nrm, 0.0)
+        q_prev, q = q, jnp.where(alive[..., None], w / jnp.where(alive, nrm, 1.0)[..., None], 0.0)
+        alphas.append(alpha)
+        betas.append(beta)
+    return tridiagonal_max(jnp.stack(alphas, -1), jnp.stack(betas[:-1], -1))
+
+
+def tridiagonal_max(a: Any, b: Any, bisections: int = 40) -> Any:
+    """Largest eigenvalue of symmetric tridiagonal matrices (diagonal a (..., k),
+    off-diagonal b (..., k - 1)), pure JAX.
+
+    Located by bisection on Sturm counts: it lies in [max a, max (a_i +
+    |b_(i-1)| + |b_i|)] (Gershgorin), and a point x is above it when every
+    pivot of T - x I is negative (d_1 = a_1 - x, d_i = a_i - x - b_(i-1)^2 /
+    d_(i-1)); the bracket is at most 3 max |a| wide, so 40 halvings leave a
+    relative error below 1e-11. Returned as the Rayleigh quotient y'Ty / y'y
+    at its eigenvector y (two steps of inverse iteration just above it, held
+    constant), which has the eigenvalue's exact derivative (y' dT y / y'y), so
+    gradients flow through eq.opt_ro as through the power iteration's quotient.
+    """
+    k = a.shape[-1]
+    ab = jnp.abs(b)
+    pad = jnp.zeros(a.shape[:-1] + (1,), a.dtype)
+    radius = jnp.concatenate([pad, ab], -1) + jnp.concatenate([ab, pad], -1)
+    a0, b0 = jax.lax.stop_gradient(a), jax.lax.stop_gradient(b)
+    lo = jnp.max(a0, axis=-1)
+    hi = jnp.max(a0 + jax.lax.stop_gradient(radius), axis=-1)
+    tiny = jnp.finfo(a.dtype).tiny
+
+    def above(x: Any) -> Any:  # every pivot of T - x I negative: x >= lambda_max
+        d = a0[..., 0] - x
+        ok = d < 0
+        for i in range(1, k):
+            d = a0[..., i] - x - b0[..., i - 1] ** 2 / jnp.minimum(d, -tiny)
+            ok = ok & (d < 0)
+        return ok
+
+    def body(_: Any, bounds: tuple) -> tuple:
+        lo, hi = bounds
+        mid = 0.5 * (lo + hi)
+        up = above(mid)
+        return jnp.where(up, lo, mid), jnp.where(up, mid, hi)
+
+    _, hi = jax.lax.fori_loop(0, bisections, body, (lo, hi))
+    # inverse iteration with T - sigma I, sigma just above lambda_max: negative
+    # definite, so the elimination needs no pivoting
+    sigma = hi + jnp.sqrt(jnp.finfo(a.dtype).eps) * jnp.abs(hi) + tiny
+    dd = a0 - sigma[..., None]
+    y = jnp.ones_like(a0)
+    for _ in range(2):
+        c, z = [], []
+        m = dd[..., 0]
+        for i in range(k):
+            if i:
+                m = dd[..., i] - b0[..., i - 1] * c[-1]
+            m = jnp.minimum(m, -tiny)
+            c.append(b0[..., i] / m if i < k - 1 else None)
+            z.append((y[..., i] - (b0[..., i - 1] * z[-1] if i else 0.0)) / m)
+        x = [None] * k
+        x[k - 1] = z[k - 1]
+        for i in reversed(range(k - 1)):
+            x[i] = z[i] - c[i] * x[i + 1]
+        y = jnp.stack(x, -1)
+        y = y / jnp.sqrt(jnp.sum(y * y, -1, keepdims=True))
+    Ty = a * y
+    if k > 1:
+        Ty = Ty + jnp.concatenate([b * y[..., 1:], pad], -1)
+        Ty = Ty + jnp.concatenate([pad, b * y[..., :-1]], -1)
+    return jnp.sum(y * Ty, -1)
+
+
+def rho_from_ritz(theta: Any) -> Any:
+    """sqrt(mu_min mu_max) from the chains' largest Ritz values (J, 2): mu_max
+    (chain 0) and 1 / mu_min (chain 1), mu_min floored at eps mu_max."""
+    mu_max = theta[:, 0]
+    mu_min = jnp.maximum(1.0 / theta[:, 1], jnp.finfo(theta.dtype).eps * mu_max)
+    return jnp.sqrt(mu_min * mu_max)
 
 
 def extreme_eigenvalues(H: Any, Hinv: Any, mask: Any, iterations: int) -> tuple[Any, Any]:

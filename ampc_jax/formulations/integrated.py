@@ -15,6 +15,7 @@ from typing import Any
 
 from ..admm.core import ADMMSolver
 from ..admm.params import SolverParams
+from ..admm.rho import RHO_STEPS
 from ..admm.state import ADMMState
 from ..problem.condensed import merged_data, merged_topology
 from ..problem.data import ProblemData
@@ -44,7 +45,7 @@ class IntegratedADMM(ADMMSolver):
     anderson: int = 0
     kkt: str = "auto"
     rho_method: str = "power"
-    rho_iterations: int = 8
+    rho_iterations: int = RHO_STEPS
     dual_residual: str = "slack"
 
     def __post_init__(self) -> None:

@@ -68,7 +68,7 @@ from ..admm.costs import padded_costs
 from ..admm.kkt import KKT, KKT_SOLVES, select_kkt
 from ..admm.layout import padded_layout
 from ..admm.params import SolverParams, as_params
-from ..admm.rho import RhoEstimates, eq_opt_ro_exact, eq_opt_ro_power, select_rho
+from ..admm.rho import RHO_STEPS, RhoEstimates, eq_opt_ro_exact, eq_opt_ro_power, select_rho
 from ..admm.state import ADMMState, cold_state, shift_state, warm_start
 from ..admm.stopping import select_dual_residual
 from ..problem.data import ProblemData
@@ -166,14 +166,15 @@ class LocalExplicit(ADMMSolver):
         ``"riccati"`` (:func:`~ampc_jax.admm.kkt.select_kkt`; each wins at some
         size there).
     rho_method : ``"power"`` (default): rho_j = ``params.rho[j]`` times eq.opt_ro's
-        rho_j*, its extreme eigenvalues by ``rho_iterations`` steps of power
-        iteration (within 10 % of the exact value on the tested problems);
+        rho_j*, its extreme eigenvalues by ``rho_iterations`` Lanczos steps on
+        the pencil (within 10 % of the exact value on the tested problems);
         ``"eigh"``: the same with the exact eigendecomposition (the reference
         the estimate is tested against; several times slower on XLA:CPU);
         ``"given"``: rho_j = ``params.rho[j]`` (no eq.opt_ro; for an objective
         whose H_j is singular, where eq.opt_ro is undefined). Objectives with
         column-rank-deficient rows always use the exact form.
-    rho_iterations : power-iteration steps of ``rho_method="power"`` (default 8).
+    rho_iterations : Lanczos steps of ``rho_method="power"`` (default 4,
+        :data:`~ampc_jax.admm.rho.RHO_STEPS`; each applies H_j and H_j^-1 once).
     dual_residual : ``"slack"`` (default) tests ||Z_j^q - Z_j^(q-1)||^2 <= eps_s,
         the slack's change in the constraints' own units; ``"paper"`` tests
         ||s_j||^2 = ||rho_j (Z_j^q - Z_j^(q-1))||^2 <= eps_s as printed, to
@@ -193,7 +194,7 @@ class LocalExplicit(ADMMSolver):
     anderson: int = 0
     kkt: str = "auto"
     rho_method: str = "power"
-    rho_iterations: int = 8
+    rho_iterations: int = RHO_STEPS
     dual_residual: str = "slack"
 
     def __post_init__(self) -> None:
