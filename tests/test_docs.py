@@ -208,3 +208,17 @@ def test_the_patterns_find_what_they_are_for():
     assert OUTSIDE.search("the paper's " + "NOTES" + ".md")
     assert OUTSIDE.search(".." + sep + "shared" + sep + "paper")
     assert not OUTSIDE.search("a shared agent, shared/owned")
+
+
+def test_layout_names_every_module():
+    """docs/layout.md has not drifted from the code: every module of the package and
+    every source file of the bridge is named there."""
+    text = (ROOT / "docs" / "layout.md").read_text()
+    files = sorted((ROOT / "ampc_jax").rglob("*.py")) + sorted(
+        (ROOT / "can_bridge" / "src").rglob("*.rs")
+    )
+    skip = {"__init__.py", "__main__.py", "lib.rs", "mod.rs"}
+    missing = [
+        str(f.relative_to(ROOT)) for f in files if f.name not in skip and f"`{f.name}`" not in text
+    ]
+    assert not missing, f"docs/layout.md does not name: {missing}"
