@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..admm.acceleration import anderson_memory
+from ..admm.learned_start import StartModel
 from ..admm.params import SolverParams, solver_params
 from ..vehicle.examples import VehicleExample, example
 from ..vehicle.manoeuvres import DriverParams, ScenarioSpec, scenario
@@ -245,6 +246,13 @@ class SimConfig:
     shadow_rho_scale, shadow_relaxation : the shadow's rho* factor and
         over-relaxation; they change how fast it reaches its tolerance, not
         the optimum. ``None``: the example's default.
+    learned_start : a trained :class:`~ampc_jax.admm.learned_start.StartModel`
+        (``ampc tune --objective warm_start``; a tuned-parameters file's
+        ``warm_start``) the controller starts each solve from: a ``"loop"``
+        network corrects the previous step's iterate, a ``"step"`` network
+        replaces it with its prediction from the step's data. ``None``
+        (default): the previous step's iterate (``warm_start``). Local
+        Explicit only.
     actuators : ``"ideal"`` (default: the plant gets the controller's torques) or
         ``"bridge"`` (the CAN bridge's limiter between them: the wheels' ranges
         and rates of :data:`~ampc_jax.vehicle.actuators.ACTUATORS` on the 2 Nm
@@ -276,6 +284,7 @@ class SimConfig:
     shadow_max_iter: int = 5000
     shadow_rho_scale: float | None = None
     shadow_relaxation: float | None = None
+    learned_start: StartModel | None = None
     actuators: str = "ideal"
     vehicle: VehicleParams = field(default_factory=VehicleParams)
     driver: DriverParams = field(default_factory=DriverParams)
@@ -323,6 +332,17 @@ class SimConfig:
             )
         if not self.enabled and self.formulation != "none":
             raise ValueError("disable: every objective is disabled; use formulation 'none'")
+        if self.learned_start is not None:
+            if not isinstance(self.learned_start, StartModel):
+                raise ValueError(
+                    f"learned_start: expected a StartModel or None, got "
+                    f"{type(self.learned_start).__name__}"
+                )
+            if self.formulation != "local_explicit":
+                raise ValueError(
+                    f"learned_start: a learned start is trained for Local Explicit, not "
+                    f"formulation {self.formulation!r}"
+                )
         self._resolve_solver_options(ex)
 
     def _resolve_solver_options(self, ex: VehicleExample) -> None:

@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..admm.learned_start import LearnedStart, StartModel
 from ..admm.runners import check_iterations
 from ..admm.state import ADMMState
 from ..formulations import FORMULATIONS, Formulation, formulation
@@ -105,6 +106,12 @@ class Controller:
         relaxation). The status is then ``solved`` where the K-th iterate meets
         the tolerance, else ``max_iter_reached`` (both applied); the fallback
         guard is the same.
+    learned_start : a :class:`~ampc_jax.admm.learned_start.StartModel` the solve
+        starts from (:attr:`solver` wraps the formulation in
+        :class:`~ampc_jax.admm.learned_start.LearnedStart`): a ``"loop"`` model
+        corrects the previous step's iterate, a ``"step"`` model replaces it by
+        its prediction from the step's data. None (default): the previous
+        step's iterate as it is.
     """
 
     example: VehicleExample
@@ -117,6 +124,7 @@ class Controller:
     warm_shift: int = 1
     vehicle: VehicleParams = field(default_factory=VehicleParams)
     fixed_iterations: int | None = None
+    learned_start: StartModel | None = None
 
     def __post_init__(self) -> None:
         if self.formulation not in FORMULATIONS:
@@ -133,6 +141,14 @@ class Controller:
         if self.fixed_iterations is not None:
             k = check_iterations(self.fixed_iterations, "fixed_iterations")
             object.__setattr__(self, "fixed_iterations", k)
+        if self.learned_start is not None:
+            if self.formulation != "local_explicit":
+                raise ValueError(
+                    f"learned_start: trained for Local Explicit, not {self.formulation!r}"
+                )
+            why = self.learned_start.mismatch(self._formulation)
+            if why is not None:
+                raise ValueError(f"learned_start: the start network does not fit: {why}")
 
     # -- static structure ---------------------------------------------------------
     @functools.cached_property
@@ -175,11 +191,17 @@ class Controller:
         return self.example.input_columns(self.agent_indices)
 
     @property
-    def solver(self) -> Formulation:
-        """The formulation solving each step."""
+    def _formulation(self) -> Formulation:
         return formulation(
             self.formulation, self.topology, max_iter=self.max_iter, anderson=self.anderson
         )
+
+    @property
+    def solver(self) -> Formulation:
+        """The formulation solving each step (started by ``learned_start`` when given)."""
+        if self.learned_start is None:
+            return self._formulation
+        return LearnedStart(self._formulation, self.learned_start)
 
     # -- init / step ----------------------------------------------------------------
     def init(self, dtype: Any = None) -> ControllerState:
@@ -240,10 +262,16 @@ class Controller:
         data = self.problem_data(params, meas, driver)
         cold = solver.cold_state(dtype)
         warm_in = state.warm if self.warm_start else cold
+        # a "step" network predicts from the data alone: no previous iterate given
+        given = (
+            None
+            if self.learned_start is not None and self.learned_start.kind == "step"
+            else warm_in
+        )
         if self.fixed_iterations is None:
-            res = solver.solve(data, params.solver, warm_in)
+            res = solver.solve(data, params.solver, given)
         else:
-            res = solver.solve_fixed(data, self.fixed_iterations, params.solver, warm_in)
+            res = solver.solve_fixed(data, self.fixed_iterations, params.solver, given)
         u0 = res.u0
         ok = usable(res.status) & jnp.all(jnp.isfinite(u0))
         lb0 = jnp.where(jnp.isfinite(data.lb[0]), data.lb[0], 0.0)
@@ -290,6 +318,7 @@ def controller_for(config: SimConfig) -> Controller | None:
         warm_shift=config.warm_shift,
         vehicle=config.vehicle,
         fixed_iterations=config.fixed_iterations,
+        learned_start=config.learned_start,
     )
 
 
