@@ -184,16 +184,20 @@ def run_implicit(
         def S(x: Any, th: Any) -> Any:
             return solver.step(th, solver.at(x, out))
 
+        # T_x' alone inside the adjoint loop: a product with respect to x only, so
+        # that no iteration forms the setup's cotangent (outer products the size
+        # of the factorisations); the setup's is formed once, at the end
+        _, vjp_x = jax.vjp(lambda x: S(x, setup), x)
         _, vjp = jax.vjp(S, x, setup)
         zero = jax.tree.map(_zero_cotangent, out)
-        a, b = vjp(ct)
 
-        def vjp_x(lam: Any) -> Any:
-            return vjp(solver.at(lam, zero))[0]
+        def T_x(lam: Any) -> Any:
+            return vjp_x(solver.at(lam, zero))[0]
 
-        lam = _adjoint(solver, vjp_x, a, tol, cap)
-        e = vjp(solver.at(lam, zero))[1]
-        return jax.tree.map(_add, b, e), jax.tree.map(_zero_cotangent, start)
+        lam = _adjoint(solver, T_x, vjp_x(ct)[0], tol, cap)
+        # c S_theta + lambda T_theta in one product: S's cotangent ct + at(lambda, 0)
+        both = jax.tree.map(_add, ct, solver.at(lam, zero))
+        return vjp(both)[1], jax.tree.map(_zero_cotangent, start)
 
     fixed.defvjp(fwd, bwd)
     return fixed(setup, jax.lax.stop_gradient(state))
