@@ -121,11 +121,12 @@ def _warm_state(path: str, solver: Any, dt: Any) -> Any:
     return solver.shift(state)
 
 
-def _params_file(path: str | None) -> tuple[tuple[float, ...] | None, float | None]:
-    """(rho scales, relaxation) of a tuned-parameters file (``--params``), or Nones.
-    Its ``settings`` (an example's weights) do not apply to a problem file."""
+def _params_file(path: str | None) -> tuple[tuple[float, ...] | None, float | None, Any]:
+    """(rho scales, relaxation, learned start) of a tuned-parameters file
+    (``--params``), or Nones. Its ``settings`` (an example's weights) do not
+    apply to a problem file."""
     if path is None:
-        return None, None
+        return None, None, None
     from ..tuning.params_file import read_params
 
     try:
@@ -134,7 +135,7 @@ def _params_file(path: str | None) -> tuple[tuple[float, ...] | None, float | No
         raise ValueError(f"--params {path}: {exc}") from None
     rs = tuned.rho_scale
     scales = None if rs is None else (tuple(rs) if isinstance(rs, tuple) else (float(rs),))
-    return scales, tuned.relaxation
+    return scales, tuned.relaxation, tuned.warm_start
 
 
 def _timed(fn: Any, *args: Any, repeats: int = 7) -> tuple[Any, float]:
@@ -202,7 +203,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
         print(f"ampc: {', '.join(flags)} ignored by {cause}", file=sys.stderr)
     max_iter = MAX_ITER_DEFAULT if args.max_iter is None else args.max_iter
     try:
-        file_scales, file_relaxation = _params_file(args.params)
+        file_scales, file_relaxation, file_start = _params_file(args.params)
     except ValueError as exc:
         return fail(str(exc))
     scales = (
@@ -238,6 +239,20 @@ def cmd_solve(args: argparse.Namespace) -> int:
                 )
             except ProblemError as e:  # the topology does not suit the formulation
                 return fail(f"{path}: {e}")
+            if file_start is not None and args.formulation == "local_explicit":
+                from ..admm.learned_start import LearnedStart
+
+                try:
+                    solver = LearnedStart(solver, file_start)
+                    jax.eval_shape(solver.setup, data)  # its inputs fit this problem
+                except ValueError as e:
+                    return fail(f"--params {args.params}: {e}")
+            elif file_start is not None:
+                print(
+                    f"ampc: --params {args.params}: warm_start ignored by --formulation "
+                    f"{args.formulation} (it starts Local Explicit)",
+                    file=sys.stderr,
+                )
             try:
                 params = solver.params(
                     rho=scales if args.rho is None else args.rho,

@@ -27,7 +27,20 @@ _FLAGS = {
     "heldout_seed": "--heldout-seed",
     "loss": "--loss",
     "anderson": "--anderson",
+    "pretrain_steps": "--pretrain-steps",
+    "schedule": "--schedule",
+    "hidden": "--hidden",
+    "batch": "--batch",
+    "heldout_cases": "--heldout-cases",
+    "horizon": "--horizon",
 }
+
+DEFAULTS = {
+    "solver": {"cases": 32, "steps": 100, "iterations": 10, "lr": 0.1, "loss": "error"},
+    "weights": {"cases": 32, "steps": 100, "iterations": 10, "lr": 0.1, "loss": "error"},
+    "warm_start": {"cases": 512, "steps": 100, "iterations": 6, "lr": 3e-3, "loss": "error"},
+}
+"""Per objective, the value of each shared flag left out."""
 
 
 def _loss_figure(history: list[dict[str, Any]], path: Path, title: str) -> None:
@@ -166,6 +179,80 @@ def _weights(args: argparse.Namespace, out: Path) -> int:
     return 0
 
 
+def _warm_start(args: argparse.Namespace, out: Path) -> int:
+    from ..tuning.params_file import write_params
+    from ..tuning.warm_start import start_table, tune_warm_start
+
+    try:
+        hidden = tuple(int(h) for h in args.hidden.split(",") if h.strip())
+    except ValueError:
+        return fail(f"--hidden: expected comma-separated layer widths, got {args.hidden!r}")
+    loss = args.loss if args.loss in ("error", "residual") else None
+    if loss is None:
+        return fail(
+            f"--loss: {args.loss!r} is not a loss of --objective warm_start (error, residual)"
+        )
+    try:
+        res = tune_warm_start(
+            args.family,
+            cases=args.cases,
+            seed=args.seed,
+            pretrain_steps=args.pretrain_steps,
+            steps=args.steps,
+            iterations=args.iterations,
+            schedule=args.schedule,
+            hidden=hidden,
+            lr=args.lr,
+            batch=args.batch,
+            loss=loss,
+            anderson=args.anderson,
+            tol=args.tol,
+            horizon=args.horizon,
+            heldout_cases=max(args.heldout_cases, 1),
+            heldout_seed=args.heldout_seed,
+            shifted_seed=args.shifted_seed,
+            evaluate=args.heldout_cases > 0,
+            progress=None if not args.quiet else False,
+        )
+    except ValueError as exc:
+        return fail(flag_error(exc, _FLAGS))
+    st = res.settings
+    tuned_for = {k: v for k, v in st["tuned_for"].items()}
+    write_params(
+        out / "params.json",
+        example=st["example"],
+        rho_scale=tuned_for["rho_scale"],
+        relaxation=tuned_for["relaxation"],
+        warm_start=res.model,
+        tuned_for=tuned_for,
+        provenance={
+            "command": "ampc tune",
+            "objective": "warm_start",
+            **{k: v for k, v in st.items() if k != "tuned_for"},
+        },
+    )
+    doc = {
+        "objective": "warm_start",
+        "settings": st,
+        "model": repr(res.model),
+        "history": res.history,
+        "evaluation": res.evaluation,
+    }
+    (out / "tune.json").write_text(json.dumps(doc, indent=2, default=_plain) + "\n")
+    losses = [h for h in res.history if "loss" in h]
+    if losses:
+        _loss_figure(losses, out / "loss.png", f"{args.family}: learned start")
+    print(
+        f"trained {res.model!r}: {res.model.n_parameters} weights on {st['pairs']} "
+        f"{'control steps' if st['kind'] == 'loop' else 'cases'} in {st['train_seconds']:.0f} s"
+    )
+    if res.evaluation:
+        print(start_table(res.evaluation))
+    for name in ("params.json", "tune.json", *(("loss.png",) if losses else ())):
+        print(f"wrote {out / name}")
+    return 0
+
+
 def _plain(value: Any) -> Any:
     if hasattr(value, "tolist"):
         return value.tolist()
@@ -176,6 +263,13 @@ def cmd_tune(args: argparse.Namespace) -> int:
     """``ampc tune``: exit 0 with the files written, 2 on bad input."""
     if args.family is None:
         args.family = "cruise_lane_change" if args.objective == "weights" else "cruise_step"
+    for key, value in DEFAULTS[args.objective].items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
+    if args.objective == "solver" and args.anderson is None:
+        args.anderson = 0
+    if args.heldout_cases < (0 if args.objective == "warm_start" else 1):
+        return fail(f"--heldout-cases: expected an integer >= 1, got {args.heldout_cases}")
     problem = output_dir(args.out)
     if problem:
         return fail(problem)
@@ -184,7 +278,8 @@ def cmd_tune(args: argparse.Namespace) -> int:
         import jax
 
         jax.config.update("jax_enable_x64", True)
-    return _solver(args, out) if args.objective == "solver" else _weights(args, out)
+    run = {"solver": _solver, "weights": _weights, "warm_start": _warm_start}[args.objective]
+    return run(args, out)
 
 
 def add_tune_command(sub: Any) -> None:
@@ -197,7 +292,10 @@ def add_tune_command(sub: Any) -> None:
         "so that they land closest to the integrated optimum (Clarabel) on a training "
         "batch of a step family; then compare iterations to tolerance on held-out cases "
         "with eq.opt_ro's defaults and the best point of a rho-scale grid. "
-        "--objective weights tunes the closed loop's weights instead.",
+        "--objective weights tunes the closed loop's weights instead; --objective "
+        "warm_start trains a learned start (a network predicting the ADMM iterate a "
+        "solve starts from, and a schedule of the first iterations' rho and alpha) "
+        "under the example's solver settings, saved in params.json's warm_start.",
     )
     p.add_argument(
         "--family",
@@ -208,31 +306,69 @@ def add_tune_command(sub: Any) -> None:
     )
     p.add_argument(
         "--objective",
-        choices=("solver", "weights"),
+        choices=("solver", "weights", "warm_start"),
         default="solver",
-        help="what to tune: the solver's speed or the closed loop's weights (default: solver)",
+        help="what to tune: the solver's speed, the closed loop's weights or a learned "
+        "start (default: solver)",
     )
     p.add_argument(
         "--cases",
         type=arg_type(at_least_one, int),
-        default=32,
-        help="training cases (default: 32)",
+        default=None,
+        help="training cases (a loop family: closed loops, every control step a pair) "
+        "(default: 32; 512 with --objective warm_start)",
     )
     p.add_argument(
-        "--steps", type=arg_type(at_least_one, int), default=100, help="Adam steps (default: 100)"
+        "--steps",
+        type=arg_type(at_least_one, int),
+        default=None,
+        help="Adam steps (of the unrolled phase with --objective warm_start) (default: 100)",
     )
     p.add_argument(
         "--iterations",
         type=arg_type(at_least_one, int),
-        default=10,
+        default=None,
         help="K, the unrolled ADMM iterations of the loss (per control step with "
-        "--objective weights) (default: 10)",
+        "--objective weights) (default: 10; 6 with --objective warm_start)",
     )
     p.add_argument(
         "--lr",
         type=arg_type(positive_finite),
-        default=0.1,
-        help="Adam's learning rate (default: 0.1)",
+        default=None,
+        help="Adam's learning rate (default: 0.1; 3e-3 with --objective warm_start, "
+        "and a 30th of it in the unrolled phase)",
+    )
+    p.add_argument(
+        "--pretrain-steps",
+        type=int,
+        default=1500,
+        help="--objective warm_start: Adam steps of regression on the training cases' "
+        "fixed points before the unrolled phase (default: 1500)",
+    )
+    p.add_argument(
+        "--schedule",
+        type=int,
+        default=0,
+        help="--objective warm_start: k, the first iterations given their own trained "
+        "(rho, alpha); each costs one more factorisation per control step (default: 0)",
+    )
+    p.add_argument(
+        "--hidden",
+        default="64,64",
+        help="--objective warm_start: the network's hidden layer widths (default: 64,64)",
+    )
+    p.add_argument(
+        "--batch",
+        type=int,
+        default=128,
+        help="--objective warm_start: cases per Adam step (default: 128)",
+    )
+    p.add_argument(
+        "--shifted-seed",
+        type=int,
+        default=2,
+        help="--objective warm_start: the seed of the held-out cases in the family's "
+        "other friction and speed range (default: 2)",
     )
     p.add_argument("--seed", type=int, default=0, help="the training cases' seed (default: 0)")
     p.add_argument(
@@ -240,9 +376,10 @@ def add_tune_command(sub: Any) -> None:
     )
     p.add_argument(
         "--heldout-cases",
-        type=arg_type(at_least_one, int),
+        type=int,
         default=64,
-        help="held-out cases of the evaluation (default: 64)",
+        help="held-out cases of the evaluation (per held-out set; 0: no evaluation with "
+        "--objective warm_start) (default: 64)",
     )
     p.add_argument(
         "--horizon",
@@ -259,7 +396,7 @@ def add_tune_command(sub: Any) -> None:
     p.add_argument(
         "--loss",
         choices=("error", "log", "residual"),
-        default="error",
+        default=None,
         help="error: mean normalised error ||U_K - U*||^2 / (||U*||^2 + N_p n_u); log: its "
         "geometric mean; residual: the smooth fraction of the K iterations above the "
         "tolerance (default: error)",
@@ -268,8 +405,9 @@ def add_tune_command(sub: Any) -> None:
         "--anderson",
         type=int,
         choices=(0, 1, 2, 3),
-        default=0,
-        help="Anderson memory of the solver tuned and evaluated (default: 0, plain ADMM)",
+        default=None,
+        help="Anderson memory of the solver tuned and evaluated (default: 0, plain ADMM; "
+        "the example's, as simulate runs it, with --objective warm_start)",
     )
     p.add_argument(
         "--tol",

@@ -107,6 +107,7 @@ class SimResult:
             "slip_target": target,
             "objectives": list(c.enabled),
             "warm_start": c.warm_start,
+            "learned_start": None if c.learned_start is None else repr(c.learned_start),
             "horizon": c.horizon,
             "max_iter": c.max_iter,
             "fixed_iterations": c.fixed_iterations,

@@ -8,6 +8,10 @@ Format ``ampc-params/1``::
       "formulation": "local_explicit",
       "solver": {"rho_scale": [f_1, ..., f_J] | f | null, "relaxation": alpha | null},
       "settings": {"q_yrt": 1.0, ...},          (optional: the example's weights)
+      "warm_start": {"kind": "step", "layers": [{"W": [[...]], "b": [...]}, ...], ...},
+                                                (optional: a learned start network)
+      "tuned_for": {"anderson": 3, "relaxation": 1.5, ...},
+                                                (optional: the solver settings it was tuned under)
       "provenance": {...}                       (optional: how it was made)
     }
 
@@ -15,7 +19,13 @@ Format ``ampc-params/1``::
 every objective, or one per objective of the example in its order);
 ``relaxation`` is the over-relaxation alpha in (0, 2). A ``null`` (or missing)
 entry leaves the default in place. ``settings`` replaces fields of the
-example's settings (weights and bounds, by name).
+example's settings (weights and bounds, by name). ``warm_start`` is a trained
+:class:`~ampc_jax.admm.learned_start.StartModel`
+(:func:`~ampc_jax.admm.learned_start.model_document`: its arrays as JSON lists),
+validated on reading. ``tuned_for`` records the solver settings the numbers were
+tuned under (``anderson``, ``relaxation``, ``rho_scale``, ``kkt``, ``dtype``,
+``tol``, ``formulation``): a command applying the file under other settings
+warns (:func:`tuned_for_differences`).
 
 Bounds, each with its reason in the refusal: ``rho_scale`` within
 [1e-6, 1e6] (:data:`RHO_SCALE_RANGE`); every numeric setting within a factor
@@ -43,6 +53,7 @@ __all__ = [
     "apply_params",
     "read_params",
     "validate_params",
+    "tuned_for_differences",
     "write_params",
 ]
 
@@ -71,7 +82,18 @@ a vehicle leaves within seconds, and the condensed forms grow as N_p^3
 (:func:`~ampc_jax.problem.limits.condensed_bytes`)."""
 
 _FORMULATIONS = ("local_explicit", "fully_distributed", "virtual_center", "integrated", "none")
-_KEYS = ("format", "example", "formulation", "solver", "settings", "provenance")
+_KEYS = (
+    "format",
+    "example",
+    "formulation",
+    "solver",
+    "settings",
+    "warm_start",
+    "tuned_for",
+    "provenance",
+)
+TUNED_FOR_KEYS = ("formulation", "anderson", "relaxation", "rho_scale", "kkt", "dtype", "tol")
+"""What ``tuned_for`` may record: the solver settings tuning ran under."""
 
 
 class TunedParams(NamedTuple):
@@ -83,6 +105,8 @@ class TunedParams(NamedTuple):
     relaxation : over-relaxation alpha in (0, 2).
     settings : the example's settings fields to replace (name -> number or numbers).
     provenance : free-form record of how the numbers were found.
+    warm_start : a learned start (:class:`~ampc_jax.admm.learned_start.StartModel`).
+    tuned_for : the solver settings the numbers were tuned under (:data:`TUNED_FOR_KEYS`).
     """
 
     example: str | None = None
@@ -91,6 +115,8 @@ class TunedParams(NamedTuple):
     relaxation: float | None = None
     settings: dict[str, Any] | None = None
     provenance: dict[str, Any] | None = None
+    warm_start: Any = None
+    tuned_for: dict[str, Any] | None = None
 
 
 def _show(value: Any, width: int = 80) -> str:
@@ -215,6 +241,12 @@ def validate_params(doc: Any) -> TunedParams:
     prov = doc.get("provenance")
     if prov is not None and not isinstance(prov, Mapping):
         raise ValueError(f"provenance: expected an object, got {_show(prov)}")
+    ws = doc.get("warm_start")
+    if ws is not None:
+        from ..admm.learned_start import StartModel, model_from_document
+
+        if not isinstance(ws, StartModel):
+            ws = model_from_document(ws, "warm_start")
     return TunedParams(
         example=ex,
         formulation=form,
@@ -222,7 +254,71 @@ def validate_params(doc: Any) -> TunedParams:
         relaxation=_relaxation(solver.get("relaxation")),
         settings=_settings(doc.get("settings")),
         provenance=None if prov is None else dict(prov),
+        warm_start=ws,
+        tuned_for=_tuned_for(doc.get("tuned_for")),
     )
+
+
+def _tuned_for(value: Any) -> dict[str, Any] | None:
+    if value is None:
+        return None
+    if not isinstance(value, Mapping):
+        raise ValueError(f"tuned_for: expected an object, got {_show(value)}")
+    out: dict[str, Any] = {}
+    for key, v in value.items():
+        if key not in TUNED_FOR_KEYS:
+            raise ValueError(
+                f"{_field(key, 'tuned_for')}: unknown field; expected {list(TUNED_FOR_KEYS)}"
+            )
+        name = f"tuned_for.{key}"
+        if key in ("formulation", "kkt", "dtype"):
+            if not isinstance(v, str):
+                raise ValueError(f"{name}: expected a name, got {_show(v)}")
+            out[key] = v
+        elif key == "anderson":
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise ValueError(f"{name}: expected an integer >= 0, got {_show(v)}")
+            out[key] = v
+        elif key == "rho_scale":
+            rs = _rho_scale(v)
+            out[key] = list(rs) if isinstance(rs, tuple) else rs
+        else:
+            out[key] = _number(name, v)
+    return out
+
+
+def tuned_for_differences(tuned: TunedParams, running: Mapping[str, Any]) -> list[str]:
+    """``name: tuned X, running Y`` for every setting of ``tuned.tuned_for`` that
+    ``running`` (the command's solver settings, same keys) gives otherwise;
+    rho scales and relaxation compare to 1e-9 relative."""
+    if not tuned.tuned_for:
+        return []
+    out = []
+    for key, want in tuned.tuned_for.items():
+        if key not in running or running[key] is None:
+            continue
+        have = running[key]
+        if key in ("rho_scale", "relaxation", "tol"):
+            a = [float(x) for x in (want if isinstance(want, list) else [want])]
+            b = [float(x) for x in (have if isinstance(have, (list, tuple)) else [have])]
+            if len(a) == 1:
+                a = a * len(b)
+            if len(b) == 1:
+                b = b * len(a)
+            same = len(a) == len(b) and all(
+                abs(x - y) <= 1e-9 * max(abs(x), abs(y)) for x, y in zip(a, b, strict=True)
+            )
+        else:
+            same = want == have
+        if not same:
+            out.append(f"{key}: tuned {want}, running {_plain_value(have)}")
+    return out
+
+
+def _plain_value(v: Any) -> Any:
+    if isinstance(v, tuple):
+        return [float(x) for x in v]
+    return v
 
 
 def params_document(params: TunedParams) -> dict[str, Any]:
@@ -239,6 +335,12 @@ def params_document(params: TunedParams) -> dict[str, Any]:
     }
     if params.settings is not None:
         doc["settings"] = dict(params.settings)
+    if params.warm_start is not None:
+        from ..admm.learned_start import model_document
+
+        doc["warm_start"] = model_document(params.warm_start)
+    if params.tuned_for is not None:
+        doc["tuned_for"] = dict(params.tuned_for)
     if params.provenance is not None:
         doc["provenance"] = dict(params.provenance)
     validate_params(doc)
@@ -254,13 +356,17 @@ def write_params(
     relaxation: Any = None,
     settings: Mapping[str, Any] | None = None,
     provenance: Mapping[str, Any] | None = None,
+    warm_start: Any = None,
+    tuned_for: Mapping[str, Any] | None = None,
 ) -> TunedParams:
     """Write a tuned-parameters file at ``path``; returns what was written.
 
     ``rho_scale``: a float or one per objective (arrays accepted); ``relaxation``
     in (0, 2); ``settings``: example settings fields by name; ``provenance``:
-    any JSON-serialisable record. ValueError naming the field on a bad value
-    (nothing is written then).
+    any JSON-serialisable record; ``warm_start``: a
+    :class:`~ampc_jax.admm.learned_start.StartModel`; ``tuned_for``: the solver
+    settings it was tuned under (:data:`TUNED_FOR_KEYS`). ValueError naming the
+    field on a bad value (nothing is written then).
     """
     doc = {
         "format": PARAMS_FORMAT,
@@ -269,9 +375,16 @@ def write_params(
         "solver": {"rho_scale": rho_scale, "relaxation": relaxation},
         "settings": None if settings is None else dict(settings),
         "provenance": None if provenance is None else dict(provenance),
+        "warm_start": warm_start,
+        "tuned_for": None if tuned_for is None else dict(tuned_for),
     }
     tuned = validate_params(doc)
-    text = json.dumps(params_document(tuned), indent=2, default=_jsonable) + "\n"
+    full = params_document(tuned)
+    ws = full.pop("warm_start", None)
+    text = json.dumps(full, indent=2, default=_jsonable)
+    if ws is not None:  # the network's arrays on one line: thousands of numbers
+        text = text[: text.rindex("}")].rstrip() + ',\n  "warm_start": ' + json.dumps(ws) + "\n}"
+    text += "\n"
     Path(path).write_text(text)
     return tuned
 
@@ -321,8 +434,37 @@ def apply_params(config: Any, tuned: TunedParams, *, keep: tuple[str, ...] = ())
         out = replace(config, **changes) if changes else config
     except ValueError as exc:
         raise ValueError(f"solver.{exc}") from None
-    if not tuned.settings:
-        return out
+    if tuned.settings:
+        out = _apply_settings(out, tuned, config.example)
+    if tuned.warm_start is not None and "warm_start" not in keep:
+        out = _apply_warm_start(out, tuned.warm_start)
+    return out
+
+
+def _apply_warm_start(config: Any, model: Any) -> Any:
+    """``config`` started by ``model`` (ValueError ``warm_start: ...`` when it
+    does not fit the configuration's formulation or problem)."""
+    from dataclasses import replace
+
+    from ..closed_loop.controller import controller_for
+
+    if config.formulation != "local_explicit":
+        raise ValueError(
+            f"warm_start: the start network is for Local Explicit, not formulation "
+            f"{config.formulation!r}"
+        )
+    try:
+        out = replace(config, learned_start=model)
+        controller_for(out)
+    except ValueError as exc:
+        raise ValueError(f"warm_start: {exc}") from None
+    return out
+
+
+def _apply_settings(config: Any, tuned: TunedParams, example_name: str) -> Any:
+    from dataclasses import replace
+
+    out = config
     settings = out.settings
     fields: dict[str, Any] = {}
     for key, value in tuned.settings.items():

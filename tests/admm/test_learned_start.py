@@ -176,7 +176,7 @@ def test_bad_models_are_refused_naming_the_field(cases):
         "kind": {"kind": "magic"},
         r"layers\[0\]": {"layers": ((W0[:-1], b0), *good["layers"][1:])},
         "input_scale": {"input_scale": np.zeros_like(good["input_scale"])},
-        "finite": {"out_mean": np.full_like(good["out_mean"], np.nan)},
+        "weights": {"out_mean": np.full_like(good["out_mean"], np.nan)},
         "out_mask": {"out_mask": np.ones(3)},
     }
     for field, change in bad.items():
