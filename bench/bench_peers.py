@@ -396,7 +396,8 @@ class DaqpPeer:
             self.model.setup(np.array(H), np.array(f), self.A.copy(), bu, bl)
         else:
             self.model.update(H=H, f=f, bupper=bu, blower=bl)
-        x, _, flag, _ = self.model.solve()
+        x, _, flag, info = self.model.solve()
+        self.iterations = int(info.get("iterations", -1))  # active-set changes
         return np.asarray(x), int(flag) > 0
 
 
@@ -442,6 +443,7 @@ class OsqpPeer:
         else:
             self.solver.update(Px=Px, q=f, l=l, u=u)
         r = self.solver.solve(raise_error=False)
+        self.iterations = int(r.info.iter)
         ok = str(r.info.status).lower() == "solved"
         x = np.asarray(r.x) if r.x is not None else np.full(f.shape, np.nan)
         return x, ok
@@ -478,6 +480,7 @@ class ProxPeer:
         else:
             self.qp.update(H=Hs, g=gs, C=C, l=gl, u=gu, l_box=lb / D, u_box=ub / D)
         self.qp.solve()
+        self.iterations = int(self.qp.results.info.iter)
         ok = self.qp.results.info.status == proxsuite.proxqp.QPSolverOutput.PROXQP_SOLVED
         return D * self.qp.results.x, bool(ok)
 
@@ -1085,6 +1088,9 @@ class PeerStep(Contender):
     def record(self, d: int, i: int, out: Any) -> None:
         self.u0[d, i] = out[0][:N_U]
         self.ok.append(out[1])
+        it = getattr(self.peer, "iterations", None)  # the solve just recorded
+        if it is not None and it >= 0:
+            self.iterations.append(it)
 
 
 class LatencyData:
@@ -1685,6 +1691,31 @@ def throughput_one(
         say(
             f"| {name} | {B:,} | {f_prog:.3g} | {r_xla / 1e9:.2f} | {100 * r_xla / pk:.2f} % | {f_est:.3g} | {r_est / 1e9:.2f} | {100 * r_est / pk:.1f} % |"
         )
+    say(
+        f"\nN_p = {h}: each piece of Local Explicit's step against its flop floor (us a case-step; "
+        f"the floor is XLA's flops of the piece at the {len(jax.devices())}-device matmul peak; "
+        f"iterations = full step - data + setup, {setup_B:,} cases)\n"
+    )
+    say("| contender | piece | us a case-step | flops | floor (us) | time / floor |")
+    say("| --- | --- | --- | --- | --- | --- |")
+    floors: dict[str, Any] = {}
+    for name in les:
+        if name not in brk or name not in flops:
+            continue
+        b, fl = brk[name], flops[name]
+        pk = fl["peak_gflops"] * 1e9
+        pieces = {
+            "data + setup": (b["setup_us"], fl["flops_setup"]),
+            f"iterations ({b['iterations_mean']:.1f})": (
+                b["full_us"] - b["setup_us"],
+                b["iterations_mean"] * fl["flops_iteration"],
+            ),
+        }
+        floors[name] = {}
+        for piece, (us, f) in pieces.items():
+            floor = 1e6 * f / pk
+            floors[name][piece] = {"us": us, "flops": f, "floor_us": floor}
+            say(f"| {name} | {piece} | {us:.1f} | {f:.3g} | {floor:.2f} | {us / floor:.0f}x |")
     # targets
     say("")
     for B in (1000, 10000):
@@ -1718,6 +1749,7 @@ def throughput_one(
         "accuracy": acc,
         "breakdown": brk,
         "flops": flops,
+        "floors": floors,
         "skipped": {str(k): v for k, v in skipped.items()},
         "compile_s": {n: {str(k): v for k, v in le.compile_s.items()} for n, le in les.items()},
         "settings": {k: v for k, v in st.items() if k != "scans"},

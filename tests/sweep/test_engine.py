@@ -49,6 +49,24 @@ def test_frozen_pairs_report_their_own_iterations():
     assert its.sum() <= int(w1.computed) < int(w0.computed)
 
 
+def test_chunked_iterations_give_each_pair_its_own_result():
+    # 18 pairs in chunks of 4: five chunks, the last padded with two copies
+    solver, d, p = _pairs("generated", 6, [0.2, 1.0, 5.0], max_iter=400)
+    whole, w0 = jax.jit(lambda d, p: solve_pairs(solver, d, p, segment=8, min_bucket=2))(d, p)
+    parts, w1 = jax.jit(lambda d, p: solve_pairs(solver, d, p, segment=8, min_bucket=2, chunk=4))(
+        d, p
+    )
+    its = np.asarray(whole.iterations)
+    assert its.min() < its.max()
+    np.testing.assert_array_equal(parts.iterations, its)
+    np.testing.assert_array_equal(parts.status, whole.status)
+    np.testing.assert_allclose(parts.u0, whole.u0, rtol=1e-9, atol=1e-9)
+    assert int(w1.needed) == int(w0.needed) == its.sum()  # the padding's work is not needed
+    assert its.sum() <= int(w1.computed)
+    with pytest.raises(ValueError, match="chunk"):
+        solve_pairs(solver, d, p, chunk=0)
+
+
 @pytest.mark.slow
 def test_anderson_counts_agree_to_round_off():
     # Anderson's least squares amplifies last-bit differences between batch
