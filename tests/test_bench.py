@@ -23,6 +23,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import ampc_jax
@@ -433,3 +434,31 @@ def test_bench_compile(tmp_path):
     assert solve["cold"]["programs"] > 0 and solve["cold"]["cache_hits"] == 0, solve
     assert solve["warm"]["cache_hits"] == solve["warm"]["programs"] > 0, solve
     assert doc["results"]["targets"]["program"] in ("PASS", "MISS"), doc["results"]
+
+
+@pytest.mark.timeout(300)
+def test_bench_grad(tmp_path):
+    """The gradient's cost against the forward pass (16 cases, K = 3, woodbury_factored):
+    the unrolled gradient and the implicit one, each within 1e-5 of central differences
+    of its own forward function; the implicit one's rho and alpha entries vanish."""
+    path = tmp_path / "grad.json"
+    out = run_bench("bench_grad.py", "--smoke", "--out", str(path), timeout=280)
+    assert (
+        "| KKT | contender | forward (ms) | value_and_grad (ms) | ratio | temp MB fwd / grad "
+        "| gradient error vs fd |"
+    ) in out, out
+    doc = json.loads(path.read_text())
+    rows = doc["results"]["rows"]
+    assert set(rows) == {"woodbury_factored"}, rows
+    c = rows["woodbury_factored"]["contenders"]
+    assert set(c) == {"unrolled vmap", "implicit 1e-06"}, c
+    for r in c.values():
+        assert r["forward_ms"] > 0 and r["grad_ms"] > 0 and r["ratio"] > 0, r
+        assert r["fd_error"] < 1e-5, r
+    g = np.abs(c["implicit 1e-06"]["gradient"])
+    assert np.all(g[:3] < 1e-6 * g.max()), g  # log rho (2), alpha: the solution ignores them
+    for label in ("unrolled", "implicit"):
+        assert any(
+            line.startswith((f"PASS woodbury_factored {label}", f"MISS woodbury_factored {label}"))
+            for line in out.splitlines()
+        ), out
