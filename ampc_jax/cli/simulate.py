@@ -220,7 +220,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         )
         cfg = with_params_file(cfg, args.params, keep=given)
         if args.set:
-            cfg = with_settings(cfg, **_parse_settings(args.set, cfg.settings))
+            cfg = with_settings(cfg, **_parse_settings(args.set, cfg.settings, cfg.example))
+        if args.params is not None:
+            _warn_tuned_for(args.params, cfg, "float32" if args.float32 else "float64")
         base_cfg = baseline_config(cfg) if args.compare else None
     except ValueError as exc:
         return fail(flag_error(exc, _FLAGS))
@@ -259,8 +261,28 @@ def _parse_floats(flag: str, text: str | None) -> float | tuple[float, ...] | No
     return vals[0] if len(vals) == 1 else vals
 
 
-def _parse_settings(items: list[str], settings: Any) -> dict[str, Any]:
-    """``--set horizon=2 --set q_yrt=1e4`` -> fields of the example's settings."""
+def _warn_tuned_for(path: str, cfg: Any, dtype: str) -> None:
+    """One warning line on stderr when the file was tuned under other solver
+    settings than ``cfg`` runs (its ``tuned_for``)."""
+    from ..tuning.params_file import read_params, tuned_for_warning
+
+    running = {
+        "formulation": cfg.formulation,
+        "dtype": dtype,
+        "tol": cfg.tol_primal,
+        **cfg.solver_options(),
+    }
+    line = tuned_for_warning(path, read_params(path), running)
+    if line is not None:
+        print(f"ampc: warning: {line}", file=sys.stderr)
+
+
+def _parse_settings(items: list[str], settings: Any, example: str | None = None) -> dict[str, Any]:
+    """``--set horizon=2 --set q_yrt=1e4`` -> fields of the example's settings, each
+    within the tuned-parameters file's bounds (a factor 1e6 of the default, the
+    horizon's 10 s of prediction)."""
+    from ..tuning.params_file import check_settings_bounds
+
     out: dict[str, Any] = {}
     for item in items:
         key, sep, value = item.partition("=")
@@ -286,6 +308,12 @@ def _parse_settings(items: list[str], settings: Any) -> dict[str, Any]:
         except ValueError as exc:
             msg = str(exc).removeprefix(f"{key}: ")
             raise ValueError(f"--set {item}: {msg}") from None
+        if example is not None:
+            try:
+                check_settings_bounds(settings, {key: out[key]}, example)
+            except ValueError as exc:
+                msg = str(exc).removeprefix(f"settings.{key}: ")
+                raise ValueError(f"--set {item}: {msg}") from None
     return out
 
 

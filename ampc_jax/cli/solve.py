@@ -215,6 +215,19 @@ def cmd_solve(args: argparse.Namespace) -> int:
         else args.relaxation
     )
     anderson = 0 if args.anderson is None else args.anderson
+    if args.params is not None:
+        from ..tuning.params_file import read_params, tuned_for_warning
+
+        running = {
+            "formulation": args.formulation,
+            "anderson": anderson,
+            "relaxation": relaxation,
+            "rho_scale": list(scales),
+            "dtype": "float32" if args.float32 else "float64",
+        }
+        line = tuned_for_warning(args.params, read_params(args.params), running)
+        if line is not None:
+            print(f"ampc: warning: {line}", file=sys.stderr)
     try:
         with warnings_as_lines():
             problem = Problem.from_json(path)

@@ -92,6 +92,12 @@ def _solver(args: argparse.Namespace, out: Path) -> int:
         example=st["example"],
         rho_scale=res.rho_scale,
         relaxation=res.relaxation,
+        tuned_for={
+            "formulation": "local_explicit",
+            "anderson": int(args.anderson),
+            "dtype": "float32" if args.float32 else "float64",
+            "tol": float(args.tol),
+        },
         provenance={"command": "ampc tune", "objective": "solver", **st},
     )
     (out / "tune.json").write_text(

@@ -51,9 +51,11 @@ __all__ = [
     "SETTINGS_FACTOR",
     "TunedParams",
     "apply_params",
+    "check_settings_bounds",
     "read_params",
     "validate_params",
     "tuned_for_differences",
+    "tuned_for_warning",
     "write_params",
 ]
 
@@ -315,6 +317,18 @@ def tuned_for_differences(tuned: TunedParams, running: Mapping[str, Any]) -> lis
     return out
 
 
+def tuned_for_warning(path: Any, tuned: TunedParams, running: Mapping[str, Any]) -> str | None:
+    """The one warning line for a file tuned under other solver settings than the
+    command's ``running`` ones (:func:`tuned_for_differences`), or None."""
+    diff = tuned_for_differences(tuned, running)
+    if not diff:
+        return None
+    return (
+        f"--params {path} was tuned for other solver settings than this command runs "
+        f"({'; '.join(diff)}): its numbers may not pay off here"
+    )
+
+
 def _plain_value(v: Any) -> Any:
     if isinstance(v, tuple):
         return [float(x) for x in v]
@@ -479,7 +493,7 @@ def _apply_settings(config: Any, tuned: TunedParams, example_name: str) -> Any:
                 raise ValueError(f"settings.{key}: expected an integer, got {value!r}")
             value = kind(int(value))
         fields[key] = value
-    _check_settings_bounds(settings, fields, config.example)
+    check_settings_bounds(settings, fields, config.example)
     try:
         new = settings.replace(**fields)
         new.validate()
@@ -488,7 +502,7 @@ def _apply_settings(config: Any, tuned: TunedParams, example_name: str) -> Any:
     return replace(out, settings=new)
 
 
-def _check_settings_bounds(settings: Any, fields: dict[str, Any], example: str) -> None:
+def check_settings_bounds(settings: Any, fields: dict[str, Any], example: str) -> None:
     """ValueError naming ``settings.<field>`` for a value outside its bound, with
     the reason: numbers within :data:`SETTINGS_FACTOR` of the example's default
     (0 stays allowed: the example's own validation says where), the horizon

@@ -456,10 +456,19 @@ def tune_warm_start(
                     best = (sc, var)
         return best[1] if best is not None else var
 
+    untrained = var  # a "loop" network with its zero last layer is today's warm start
     var = train_phase("pretrain", pre_loss, int(pretrain_steps), float(lr))
     var = train_phase(
         "unrolled", un_loss, int(steps), float(lr) / 30.0 if unrolled_lr is None else unrolled_lr
     )
+    kept_untrained = False
+    if kind == "loop" and n_val and int(steps) > 0:
+        # the validation split decides: a trained correction that costs iterations
+        # against the previous step's iterate is not kept
+        sc0 = score(untrained)
+        history.append({"phase": "validation", "step": "untrained", "iterations": sc0})
+        if sc0 < score(var):
+            var, kept_untrained = untrained, True
     model = StartModel.from_arrays(_arrays(var, fixed), kind, **model_sizes)
     settings = {
         "family": fam.name,
@@ -483,6 +492,7 @@ def tune_warm_start(
         "objectives": list(T.objective_names),
         "horizon": T.horizon,
         "parameters": model.n_parameters,
+        "kept_untrained": kept_untrained,
         "tuned_for": {
             "formulation": "local_explicit",
             "rho_scale": [float(x) for x in rho],
