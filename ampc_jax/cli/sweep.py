@@ -72,6 +72,27 @@ def _quantile_lines(table: Any) -> list[str]:
     return lines
 
 
+def _solver_defaults(args: argparse.Namespace) -> tuple[float, int, str]:
+    """(relaxation, Anderson memory, where they come from): the flags where given,
+    else the family's example's ``solver_defaults`` (what ``simulate`` and
+    ``tune`` run), else the paper's plain iteration (1.0, 0) for a problem of no
+    example."""
+    from ..sweep.families import FAMILIES
+    from ..vehicle.examples import example
+
+    cfg = FAMILIES[args.family].sample(1).config
+    d = example(cfg.example).solver_defaults if cfg is not None else {}
+    relaxation = float(d.get("relaxation", 1.0)) if args.relaxation is None else args.relaxation
+    anderson = int(d.get("anderson", 0)) if args.anderson is None else args.anderson
+    if args.relaxation is not None and args.anderson is not None:
+        source = "as given"
+    elif cfg is not None:
+        source = f"the {cfg.example} example's defaults where not given"
+    else:
+        source = "the paper's plain iteration where not given"
+    return relaxation, anderson, source
+
+
 def cmd_sweep(args: argparse.Namespace) -> int:
     """Run ``ampc sweep`` (exit 0; 2 on bad input)."""
     if args.cpu_devices > 1:
@@ -102,6 +123,12 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     if err:
         return fail(err)
     try:
+        relaxation, anderson, source = _solver_defaults(args)
+        if jax.process_index() == 0:
+            print(
+                f"ampc sweep: {args.family}, relaxation {relaxation:g}, Anderson {anderson} "
+                f"({source})"
+            )
         spec = SweepSpec(
             family=args.family,
             cases=args.cases,
@@ -109,8 +136,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             formulation=args.formulation,
             seed=args.seed,
             tol=args.tol,
-            relaxation=args.relaxation,
-            anderson=args.anderson,
+            relaxation=relaxation,
+            anderson=anderson,
             max_iter=args.max_iter,
             horizon=args.horizon,
             chunk=args.chunk,
@@ -211,11 +238,17 @@ def add_sweep_command(sub: Any) -> None:
     p.add_argument(
         "--relaxation",
         type=arg_type(over_relaxation),
-        default=1.0,
-        help="over-relaxation in (0, 2) (default: 1.0, the paper)",
+        default=None,
+        help="over-relaxation in (0, 2) (default: the family's example's, as simulate runs "
+        "it: 1.5 for cruise and stability; 1.0, the paper's, for generated problems)",
     )
     p.add_argument(
-        "--anderson", type=int, default=0, choices=range(4), help="Anderson memory (default: 0)"
+        "--anderson",
+        type=int,
+        default=None,
+        choices=range(4),
+        help="Anderson memory (default: the family's example's, as simulate runs it: 3 "
+        "for cruise and stability; 0 for generated problems)",
     )
     p.add_argument(
         "--max-iter",

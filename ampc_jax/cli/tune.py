@@ -265,6 +265,36 @@ def _plain(value: Any) -> Any:
     return str(value)
 
 
+def _solver_header(args: argparse.Namespace) -> str | int:
+    """The header line naming the solver settings tuning runs under (the family's
+    example's defaults, as ``simulate`` runs them, where not given); sets
+    ``args.anderson`` for the solver objective. An exit code on a bad family."""
+    from ..sweep.families import FAMILIES
+    from ..tuning.warm_start import command_settings
+
+    fam = FAMILIES.get(args.family)
+    if fam is None:
+        return fail(f"--family: expected one of {sorted(FAMILIES)}, got {args.family!r}")
+    cfg = fam.sample(1).config
+    ex = None if cfg is None else cfg.example
+    st = command_settings(ex, anderson=args.anderson)
+    source = f"the {ex} example's defaults" if ex else "the paper's plain iteration"
+    if args.objective == "solver":
+        if args.anderson is None:  # the residual loss unrolls plain ADMM
+            args.anderson = 0 if args.loss == "residual" else st["anderson"]
+        return (
+            f"ampc tune: solver on {args.family}, Anderson {args.anderson} ({source} "
+            f"where not given; rho scale and relaxation are what is tuned)"
+        )
+    if args.objective == "weights":
+        return f"ampc tune: weights on {args.family}, the closed loop's solver ({source})"
+    rs = ", ".join(f"{x:g}" for x in st["rho_scale"])
+    return (
+        f"ampc tune: warm_start on {args.family}, rho scale ({rs}), relaxation "
+        f"{st['relaxation']:g}, Anderson {st['anderson']} ({source} where not given)"
+    )
+
+
 def cmd_tune(args: argparse.Namespace) -> int:
     """``ampc tune``: exit 0 with the files written, 2 on bad input."""
     if args.family is None:
@@ -272,18 +302,20 @@ def cmd_tune(args: argparse.Namespace) -> int:
     for key, value in DEFAULTS[args.objective].items():
         if getattr(args, key) is None:
             setattr(args, key, value)
-    if args.objective == "solver" and args.anderson is None:
-        args.anderson = 0
+    if not args.float32:
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+    header = _solver_header(args)
+    if isinstance(header, int):
+        return header
+    print(header)
     if args.heldout_cases < (0 if args.objective == "warm_start" else 1):
         return fail(f"--heldout-cases: expected an integer >= 1, got {args.heldout_cases}")
     problem = output_dir(args.out)
     if problem:
         return fail(problem)
     out = Path(args.out)
-    if not args.float32:
-        import jax
-
-        jax.config.update("jax_enable_x64", True)
     run = {"solver": _solver, "weights": _weights, "warm_start": _warm_start}[args.objective]
     return run(args, out)
 
@@ -412,8 +444,9 @@ def add_tune_command(sub: Any) -> None:
         type=int,
         choices=(0, 1, 2, 3),
         default=None,
-        help="Anderson memory of the solver tuned and evaluated (default: 0, plain ADMM; "
-        "the example's, as simulate runs it, with --objective warm_start)",
+        help="Anderson memory of the solver tuned and evaluated (default: the family's "
+        "example's, as simulate runs it: 3 for cruise and stability; 0 for generated "
+        "problems and for --loss residual, which unrolls plain ADMM)",
     )
     p.add_argument(
         "--tol",
