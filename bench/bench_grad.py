@@ -120,7 +120,8 @@ def programs(
         return jnp.sum(solver.solve_fixed(dd, K, p).u0 ** 2)
 
     def checkpointed(theta: Any, d: Any) -> Any:
-        return jnp.sum(fixed_checkpointed(solver, *inputs(theta, d), K).u0 ** 2)
+        dd, p = inputs(theta, d)
+        return jnp.sum(fixed_checkpointed(solver, dd, K, p).u0 ** 2)
 
     def solved(theta: Any, d: Any) -> Any:
         return jnp.sum(solver_tol.solve(*inputs(theta, d)).u0 ** 2)
