@@ -462,3 +462,16 @@ def test_bench_grad(tmp_path):
             line.startswith((f"PASS woodbury_factored {label}", f"MISS woodbury_factored {label}"))
             for line in out.splitlines()
         ), out
+
+
+@pytest.mark.timeout(400)
+def test_bench_warm_start(tmp_path):
+    path = tmp_path / "warm_start.json"
+    out = run_bench("bench_warm_start.py", "--smoke", "--out", str(path), timeout=380)
+    assert "cruise_step: StartModel(kind='step', sizes=[122, 4, 8]" in out, out
+    assert "validation after 0 unrolled steps" in out, out
+    doc = json.loads(path.read_text())
+    hist = doc["results"]["history"]
+    assert sum(h["phase"] == "pretrain" for h in hist) == 30
+    assert sum(h["phase"] == "unrolled" for h in hist) == 2
+    assert path.with_suffix(".png").stat().st_size > 0
