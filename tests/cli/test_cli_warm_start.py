@@ -134,3 +134,28 @@ def test_a_bad_warm_start_entry_is_refused_naming_the_field(tmp_path, capsys):
         code = main(["solve", "cruise_control", "--json", "--params", str(path)])
         err = capsys.readouterr().err
         assert code == 2 and "Traceback" not in err and field in err, err
+
+
+@pytest.mark.timeout(400)
+def test_export_carries_the_network(tmp_path, capsys):
+    """The exported step embeds the network's weights (constants of the StableHLO):
+    the artefact reproduces its golden pair with nothing but the file, and its
+    golden outputs are the learned start's, not the previous-step warm start's."""
+    import zipfile
+
+    from ampc_jax.runtime.artefact import read_artefact
+
+    path = tmp_path / "params.json"
+    model = _cruise_step_model("step")
+    write_params(path, example="cruise", warm_start=model)
+    manifests, arts = [], []
+    for params in ((), ("--params", str(path))):
+        art = tmp_path / f"step{len(params)}.ampc"
+        code = main(["export", "--scenario", "cruise_lane_change", *params, "--out", str(art)])
+        assert code == 0, capsys.readouterr().err
+        with zipfile.ZipFile(art) as z:
+            manifests.append(json.loads(z.read("manifest.json")))
+        arts.append(art)
+    assert manifests[0]["config_hash"] != manifests[1]["config_hash"]
+    assert manifests[0]["golden"]["outputs"] != manifests[1]["golden"]["outputs"]
+    read_artefact(arts[1]).compiled()  # the golden pair, from the file alone
