@@ -31,7 +31,11 @@ def _params(solver, rho, relaxation, tol, rel=0.0):
     return solver.params(rho=r, relaxation=relaxation, tol_primal=tol, tol_dual=tol, tol_rel=rel)
 
 
-@pytest.mark.parametrize("kind", [LocalExplicit, IntegratedADMM])
+# the integrated MPC runs the same runners (admm/core.py), written once; its variant
+# compiles three more programs and runs under -m slow
+@pytest.mark.parametrize(
+    "kind", [LocalExplicit, pytest.param(IntegratedADMM, marks=pytest.mark.slow)]
+)
 def test_one_compiled_step_serves_five_parameter_points(kind):
     p = random_problem(2, 2, shared="all")
     d = p.data()
