@@ -37,6 +37,7 @@ against the solve to tolerance.
 Run::
 
     taskset -c 1 python bench/bench_grad.py                 # 1,000 cases, K = 10
+    taskset -c 1 python bench/bench_grad.py --batchings "" --anderson 3   # implicit only
     python bench/bench_grad.py --smoke                      # 16 cases, K = 3, woodbury_factored
 
 Result file: ``bench/results/bench_grad.json`` (``--out``; ``bench/_meta.py``).
