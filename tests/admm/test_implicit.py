@@ -95,11 +95,12 @@ def test_local_explicit_gradient_matches_central_differences(anderson):
     check_gradient("local_explicit", anderson)
 
 
+@pytest.mark.slow  # the consensus formulations share the adjoint code; Local Explicit's run by default
 def test_fully_distributed_gradient_matches_central_differences():
     check_gradient("fully_distributed", 0)
 
 
-@pytest.mark.parametrize("anderson", [0, 3])
+@pytest.mark.parametrize("anderson", [pytest.param(0, marks=pytest.mark.slow), 3])
 def test_forward_value_is_the_ordinary_solve(anderson):
     solver, inputs, grad, _, _, w = case("local_explicit", anderson)
     data, params = inputs(THETA)
@@ -121,6 +122,7 @@ def test_forward_value_is_the_ordinary_solve(anderson):
     np.testing.assert_allclose(value, jnp.sum(w * ref.u[0]), rtol=1e-12)
 
 
+@pytest.mark.slow  # depends on Anderson's behaviour at round-off: a demonstration, not a rule
 def test_unrolled_through_converged_anderson_is_off_where_implicit_is_not():
     """The defect the implicit derivative fixes: reverse mode through 300 unrolled
     Anderson iterations (converged to round-off after ~150) differs from central
