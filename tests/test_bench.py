@@ -436,6 +436,7 @@ def test_bench_compile(tmp_path):
     assert doc["results"]["targets"]["program"] in ("PASS", "MISS"), doc["results"]
 
 
+@pytest.mark.slow  # two minutes of compiling on 2 cores; the gradients' accuracy is tests/admm/test_implicit.py's
 @pytest.mark.timeout(300)
 def test_bench_grad(tmp_path):
     """The gradient's cost against the forward pass (16 cases, K = 3, woodbury_factored):
