@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..closed_loop import config_for
+from ..closed_loop.controller import controller_for
 from .runcheck import check_run
 from .runner import environment
 from .signals import BUS_FIELDS, bus_measurement
@@ -59,7 +60,7 @@ def _config(meta: dict[str, Any], **overrides: Any) -> Any:
 
 def _scan(cfg: Any, dtype: Any, buses: np.ndarray, params: Any = None) -> Any:
     """Torques and iterations of the controller over ``buses`` (K, 13): one scan."""
-    ctrl = cfg.controller()
+    ctrl = controller_for(cfg)
     p0 = cfg.loop_params(dtype).controller
 
     def run(params: Any, buses: Any) -> Any:

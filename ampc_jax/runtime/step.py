@@ -28,7 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..closed_loop.config import SimConfig
-from ..closed_loop.controller import OK_STATUS, Controller
+from ..closed_loop.controller import Controller, controller_for
+from ..results import usable
 from ..vehicle.actuators import ACTUATORS, ActuatorLimits
 from .signals import BUS_FIELDS, bus_measurement
 
@@ -71,7 +72,7 @@ def command_problem(torques: np.ndarray, report: StepReport) -> str | None:
     step (the stability example adds the driver's torque to the controller's):
     :func:`clamp_to_limits` clamps it, as the bridge and the simulation do."""
     t = np.asarray(torques, np.float64)
-    if bool(report.fallback) or int(report.status) not in OK_STATUS:
+    if bool(report.fallback) or not usable(int(report.status)):
         return f"solve failed (status {int(report.status)}, fallback {bool(report.fallback)})"
     if t.shape != (4,) or not np.all(np.isfinite(t)):
         return f"non-finite torque {t.tolist()}"
@@ -119,7 +120,7 @@ class RuntimeStep:
 
     @functools.cached_property
     def controller(self) -> Controller:
-        return self.config.controller()
+        return controller_for(self.config)
 
     @property
     def jnp_dtype(self) -> Any:

@@ -99,7 +99,9 @@ def loop_pairs(
     )
     n_rho = base.controller.solver.rho.shape[-1]
     pts = jnp.broadcast_to(jnp.tile(rho, C)[:, None], (C * P, n_rho))
-    return _program(config.simulator(), int(n_steps), int(chunk))(sc, pts, base)
+    from ..closed_loop.loop import simulator_for
+
+    return _program(simulator_for(config), int(n_steps), int(chunk))(sc, pts, base)
 
 
 @functools.lru_cache(maxsize=8)

@@ -53,7 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..closed_loop.config import LoopParams, SimConfig, baseline_config
-from ..closed_loop.loop import Simulator, run_closed_loop
+from ..closed_loop.loop import Simulator, run_closed_loop, simulator_for
 from ..sweep.families import LoopCases
 from ..vehicle.manoeuvres import SCENARIOS, scenario
 from ..vehicle.params import CONTROL_DT
@@ -197,7 +197,7 @@ def _cast(tree: Any, dtype: Any) -> Any:
 def _run_logs(config: SimConfig, scenarios: Any, n_steps: int, dtype: Any) -> Any:
     """The deployed closed loop (to tolerance, no shadow) of stacked scenarios, as numpy."""
     cfg = replace(config, fixed_iterations=None, shadow=False)
-    log = _batch_run(cfg.simulator(), _cast(scenarios, dtype), cfg.loop_params(dtype), n_steps)
+    log = _batch_run(simulator_for(cfg), _cast(scenarios, dtype), cfg.loop_params(dtype), n_steps)
     return jax.tree.map(np.asarray, log)
 
 
@@ -393,7 +393,7 @@ def tune_weights(
     dt = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
     t0 = time.perf_counter()
     train_cfg = replace(config, fixed_iterations=K, shadow=False)
-    sim = train_cfg.simulator()
+    sim = simulator_for(train_cfg)
     params = train_cfg.loop_params(dt)
     train_sc = _cast(_take(cases.scenarios, n_train), dt)
     theta0 = log_weights(config.settings, fields, dt)
