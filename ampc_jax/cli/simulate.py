@@ -229,6 +229,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     problem = output_dir(args.out)
     if problem:
         return fail(problem)
+    print(_header(args.scenario, cfg))
     out = Path(args.out)
     timing = cfg.formulation not in ("integrated", "none") and not args.no_timing and cfg.shadow
     m, mb, figs = _run(
@@ -259,6 +260,22 @@ def _parse_floats(flag: str, text: str | None) -> float | tuple[float, ...] | No
             f"got {text!r}"
         ) from None
     return vals[0] if len(vals) == 1 else vals
+
+
+def _header(scenario: str, cfg: Any) -> str:
+    """The first line printed: the scenario and the solver settings it runs (the
+    example's ``solver_defaults`` where no flag or file gave one)."""
+    if cfg.formulation == "none":
+        return f"ampc simulate: {scenario}, no MPC"
+    o = cfg.solver_options()
+    rs = o["rho_scale"]
+    rs = ", ".join(f"{x:g}" for x in rs) if isinstance(rs, list) else f"{rs:g}"
+    start = ", learned start" if cfg.learned_start is not None else ""
+    return (
+        f"ampc simulate: {scenario}, {cfg.formulation}, rho scale ({rs}), relaxation "
+        f"{o['relaxation']:g}, Anderson {o['anderson']}{start} (the {cfg.example} example's "
+        f"defaults where no flag or --params gave one)"
+    )
 
 
 def _warn_tuned_for(path: str, cfg: Any, dtype: str) -> None:

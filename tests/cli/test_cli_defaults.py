@@ -69,3 +69,22 @@ def test_tune_runs_the_examples_anderson_and_records_it(tmp_path, capsys):
     )  # fmt: skip
     assert code == 0
     assert "Anderson 0" in capsys.readouterr().out.splitlines()[0]
+
+
+@pytest.mark.timeout(300)
+def test_simulate_names_the_examples_defaults_in_its_header(tmp_path, capsys):
+    code = main(
+        ["simulate", "stability_dlc", "--duration", "0.2", "--out", str(tmp_path / "s"),
+         "--quiet", "--no-timing", "--no-shadow"]
+    )  # fmt: skip
+    out = capsys.readouterr().out
+    assert code == 0, out
+    d = example("stability").solver_defaults
+    rs = ", ".join(f"{x:g}" for x in d["rho_scale"])
+    assert out.splitlines()[0] == (
+        f"ampc simulate: stability_dlc, local_explicit, rho scale ({rs}), relaxation "
+        f"{d['relaxation']:g}, Anderson {d['anderson']} (the stability example's defaults "
+        f"where no flag or --params gave one)"
+    )
+    m = json.loads((tmp_path / "s" / "metrics.json").read_text())
+    assert m["relaxation"] == d["relaxation"] and m["anderson"] == d["anderson"]
