@@ -589,7 +589,9 @@ def add_runtime_commands(sub: Any) -> None:
     p.add_argument(
         "--rho-scale",
         default=None,
-        help="comma-separated rho scales to replay in one vmapped batch (default: none)",
+        help="comma-separated factors on the run's own rho scales (the example's default, "
+        "e.g. the cruise example's (1, 0.5): 1 replays the run's setting), replayed in one "
+        "vmapped batch (default: none)",
     )
     p.add_argument(
         "--formulation",

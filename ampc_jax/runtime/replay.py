@@ -40,7 +40,7 @@ from .signals import BUS_FIELDS, bus_measurement
 from .step import RuntimeStep
 from .ticklog import RunLogError
 
-__all__ = ["load_run", "replay_run"]
+__all__ = ["load_run", "replay_run", "scaled_rho"]
 
 WHEELS = ("FL", "FR", "RL", "RR")
 
@@ -56,6 +56,15 @@ def load_run(log_dir: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
 def _config(meta: dict[str, Any], **overrides: Any) -> Any:
     kw = {"shadow": False, "formulation": meta["formulation"], **overrides}
     return config_for(meta["scenario"], **kw)
+
+
+def scaled_rho(base: Any, factor: float) -> Any:
+    """The run's rho scales ``base`` (a float or one per objective) times ``factor``: a
+    replay's ``--rho-scale 1`` is the run's own setting (the cruise example's (1, 0.5)),
+    not 1 for every objective."""
+    if isinstance(base, tuple):
+        return tuple(float(b) * float(factor) for b in base)
+    return float(base) * float(factor)
 
 
 def _scan(cfg: Any, dtype: Any, buses: np.ndarray, params: Any = None) -> Any:
@@ -85,6 +94,9 @@ def replay_run(
     progress: Callable[[str], Any] | None = None,
 ) -> dict[str, Any]:
     """Replay the run in ``log_dir``; write ``replay.json`` and ``replay.parquet`` to ``out``.
+
+    ``rho_scales``: factors on the run's own rho scales (:func:`scaled_rho`; 1 replays
+    the run's setting), each one more variant of one vmapped batch.
 
     The logs are checked first (:func:`~.runcheck.check_run`: RunLogError, naming
     what does not add up). ``progress(text)`` gets a line when the step is
@@ -195,7 +207,10 @@ def replay_run(
         scan_fn, _, b = _scan(cfg, dtype, buses)
         stacked = jax.tree.map(
             lambda *x: jnp.stack(x),
-            *[_config(meta, rho_scale=s).loop_params(dtype).controller for s in rho_scales],
+            *[
+                _config(meta, rho_scale=scaled_rho(cfg.rho_scale, s)).loop_params(dtype).controller
+                for s in rho_scales
+            ],
         )
         T, it = timed("rho scales", jax.vmap(scan_fn, in_axes=(0, None)), stacked, b)
         for s, Ts, its in zip(rho_scales, np.asarray(T), np.asarray(it), strict=True):

@@ -203,3 +203,21 @@ def test_no_tick_stepped_is_refused_cleanly(run_dir, tmp_path, capsys) -> None:
     _reseal(d)
     line = _refusal(capsys, d, tmp_path)
     assert "no tick" in line and "stepped" in line, line
+
+
+@pytest.mark.parametrize("scenario", ["cruise_lane_change", "stability_launch_brake"])
+def test_replay_rho_scale_one_is_the_runs_own_setting(scenario):
+    """``ampc replay --rho-scale 1`` replays the run's rho (the cruise example's default
+    scales are (1, 0.5)), not 1 for every objective; 2 doubles each objective's."""
+    import jax.numpy as jnp
+
+    from ampc_jax.closed_loop import config_for
+    from ampc_jax.runtime.replay import scaled_rho
+
+    run = config_for(scenario, shadow=False)
+    base = run.loop_params(jnp.float64).controller.solver.rho
+    for factor in (1.0, 2.0):
+        cfg = config_for(scenario, shadow=False, rho_scale=scaled_rho(run.rho_scale, factor))
+        rho = cfg.loop_params(jnp.float64).controller.solver.rho
+        np.testing.assert_allclose(np.asarray(rho), factor * np.asarray(base), rtol=1e-12)
+    assert scaled_rho((1.0, 0.5), 2.0) == (2.0, 1.0) and scaled_rho(0.5, 3.0) == 1.5
