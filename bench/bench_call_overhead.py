@@ -43,9 +43,9 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 import ampc_jax  # noqa: F401  (its XLA flags; JAX starts its backend later)
-from ampc_jax.closed_loop import config_for, simulate
-from ampc_jax.closed_loop.controller import OK_STATUS
+from ampc_jax.closed_loop import config_for, controller_for, simulate
 from ampc_jax.formulations import IntegratedADMM, LocalExplicit
+from ampc_jax.results import USABLE_STATUS
 
 jax.config.update("jax_enable_x64", True)
 
@@ -82,7 +82,7 @@ def run(name: str, repeats: int = REPEATS, duration: float | None = None) -> dic
     cfg = config_for(name) if duration is None else config_for(name, shadow=False)
     res = simulate(name, cfg, duration=duration)
     log = res.log
-    T = cfg.controller().topology
+    T = controller_for(cfg).topology
     le = LocalExplicit(T, max_iter=cfg.max_iter, anderson=cfg.anderson)
     ia = IntegratedADMM(T, max_iter=max(cfg.max_iter, 2000), anderson=cfg.anderson)
     p_le = cfg.loop_params().controller.solver
@@ -101,7 +101,7 @@ def run(name: str, repeats: int = REPEATS, duration: float | None = None) -> dic
     wis = [cold]
     for k in range(K - 1):
         r = full_i(ds[k], p_ia, wis[-1])
-        ok = int(r.status) in OK_STATUS and bool(np.all(np.isfinite(np.asarray(r.u))))
+        ok = int(r.status) in USABLE_STATUS and bool(np.all(np.isfinite(np.asarray(r.u))))
         wis.append(ia.shift(r.state, cfg.warm_shift) if ok else cold)
     fns = {
         ("LE", "full"): (jax.jit(le.solve).lower(ds[0], p_le, ws[0]).compile(), "le3"),

@@ -161,9 +161,11 @@ class Replays:
     """The compiled replays of one example, one per solver (kind, iteration cap)."""
 
     def __init__(self, config: Any, chunk: int) -> None:
+        from ampc_jax.closed_loop import controller_for
+
         self.config, self.chunk = config, chunk
-        self.topology = config.controller().topology
-        self.cols = config.controller().input_columns
+        self.topology = controller_for(config).topology
+        self.cols = controller_for(config).input_columns
         self.replays: dict[tuple[str, int], Replay] = {}
         self.points = 0
 

@@ -330,11 +330,11 @@ def _reference_u0(T: Any, data: Any, n: int) -> np.ndarray:
 def cruise_case(n_cases: int, n_single: int, duration: float | None) -> Case:
     import jax.numpy as jnp
 
-    from ampc_jax.closed_loop import config_for, simulate
+    from ampc_jax.closed_loop import config_for, controller_for, simulate
 
     cfg = config_for("cruise_lane_change", formulation="fully_distributed", shadow=False)
     res = simulate("cruise_lane_change", cfg, duration=duration, timing=False)
-    ctrl = cfg.controller()
+    ctrl = controller_for(cfg)
     T = ctrl.topology
     log = res.log
     K = int(np.shape(log.t)[0])

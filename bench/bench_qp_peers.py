@@ -80,13 +80,13 @@ def run_scenario(
     import jaxopt
 
     from ampc_jax.admm import shift_horizon
-    from ampc_jax.closed_loop import simulate
+    from ampc_jax.closed_loop import controller_for, simulate
     from ampc_jax.formulations import IntegratedADMM, LocalExplicit
     from ampc_jax.problem import condensed_qp
 
     res = simulate(name, duration=duration)
     cfg, log = res.config, res.log
-    ctrl = cfg.controller()
+    ctrl = controller_for(cfg)
     T = ctrl.topology
     shadow = np.asarray(log.u_shadow)[:, ctrl.input_columns]
     K = int(np.shape(log.t)[0])

@@ -42,14 +42,14 @@ CHILD = r"""
 import sys
 import jax
 jax.config.update("jax_enable_x64", True)
-from ampc_jax.closed_loop import config_for, simulate
+from ampc_jax.closed_loop import config_for, controller_for, simulate
 from ampc_jax.formulations import IntegratedADMM, LocalExplicit
 
 scenario, solver_kind, anderson = sys.argv[1], sys.argv[2], sys.argv[3]
 kw = {} if anderson == "default" else {"anderson": int(anderson)}
 cfg = config_for(scenario, shadow=False, **kw)
 log = simulate(scenario, cfg, duration=1.0).log
-T = cfg.controller().topology
+T = controller_for(cfg).topology
 data = jax.tree.map(lambda x: x[10], log.data)
 if solver_kind == "le":
     solver = LocalExplicit(T, max_iter=cfg.max_iter, anderson=cfg.anderson)

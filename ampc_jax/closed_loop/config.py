@@ -20,7 +20,6 @@ build:
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
@@ -47,12 +46,10 @@ __all__ = [
     "LoopParams",
     "SimConfig",
     "baseline_config",
-    "built",
     "check_duration",
     "check_mu",
     "check_steps",
     "config_for",
-    "register_builder",
     "with_settings",
 ]
 
@@ -99,29 +96,6 @@ PAPER_SOLVER_OPTIONS: dict[str, Any] = {
 """eq.opt_ro's rho* unscaled and no over-relaxation or acceleration: the
 paper's iteration (``config_for(..., **PAPER_SOLVER_OPTIONS)``); the warm start
 (which the paper does not use) is the standard shifted one."""
-
-
-_BUILDERS: dict[str, Callable[[SimConfig], Any]] = {}
-
-
-def register_builder(name: str, build: Callable[[SimConfig], Any]) -> None:
-    """Record ``build`` (a config -> object function beside the class it builds)
-    under ``name``, so that :meth:`SimConfig.controller` and
-    :meth:`SimConfig.simulator`, the former builder methods, keep working
-    without this module importing what it configures. ``controller.py``
-    registers ``"controller"``, ``loop.py`` ``"simulator"``; importing
-    :mod:`ampc_jax.closed_loop` imports both."""
-    _BUILDERS[name] = build
-
-
-def built(name: str, config: SimConfig) -> Any:
-    """What the builder registered as ``name`` makes of ``config``."""
-    if name not in _BUILDERS:
-        raise RuntimeError(
-            f"{name}: no builder registered; import ampc_jax.closed_loop (it registers "
-            f"controller_for and simulator_for)"
-        )
-    return _BUILDERS[name](config)
 
 
 def check_duration(duration: Any, name: str = "duration") -> float:
@@ -419,17 +393,6 @@ class SimConfig:
         if isinstance(self.rho_scale, tuple):
             out["rho_scale"] = list(self.rho_scale)
         return out
-
-    # -- former builders, kept for callers outside the closed loop ------------------
-    def controller(self) -> Any:
-        """Alias of :func:`~ampc_jax.closed_loop.controller.controller_for` (``config``):
-        the static controller, or None for ``formulation="none"``."""
-        return built("controller", self)
-
-    def simulator(self) -> Any:
-        """Alias of :func:`~ampc_jax.closed_loop.loop.simulator_for` (``config``):
-        the static closed loop."""
-        return built("simulator", self)
 
     # -- the numbers a compiled loop takes ---------------------------------------------
     def loop_params(self, dtype: Any = None) -> LoopParams:

@@ -32,23 +32,18 @@ from ..admm.state import ADMMState
 from ..formulations import FORMULATIONS, Formulation, formulation
 from ..problem.data import ProblemData, make_data
 from ..problem.topology import Topology
-from ..results import USABLE_STATUS, usable
+from ..results import usable
 from ..vehicle.examples import VehicleExample
 from ..vehicle.params import Measurement, VehicleParams
-from .config import ControllerParams, SimConfig, register_builder
+from .config import ControllerParams, SimConfig
 
 __all__ = [
-    "OK_STATUS",
     "Controller",
     "ControllerState",
     "DriverInputs",
     "StepInfo",
     "controller_for",
 ]
-
-OK_STATUS = USABLE_STATUS
-"""Former name of :data:`~ampc_jax.results.USABLE_STATUS` (status codes whose
-inputs are applied); ask :func:`~ampc_jax.results.usable` instead."""
 
 
 class DriverInputs(NamedTuple):
@@ -320,6 +315,3 @@ def controller_for(config: SimConfig) -> Controller | None:
         fixed_iterations=config.fixed_iterations,
         learned_start=config.learned_start,
     )
-
-
-register_builder("controller", controller_for)

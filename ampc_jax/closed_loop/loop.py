@@ -57,7 +57,6 @@ from .config import (
     check_mu,
     check_steps,
     config_for,
-    register_builder,
 )
 from .controller import Controller, DriverInputs, controller_for
 from .log import SimLog
@@ -216,9 +215,6 @@ def simulator_for(config: SimConfig) -> Simulator:
     shadow = shadow_for(config, ctrl.topology) if ctrl is not None else None
     limits = ACTUATORS if config.actuators == "bridge" else None
     return Simulator(config.vehicle_example, ctrl, shadow, config.vehicle, config.driver, limits)
-
-
-register_builder("simulator", simulator_for)
 
 
 def _cast(tree: Any, dtype: Any) -> Any:

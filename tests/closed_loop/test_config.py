@@ -12,6 +12,8 @@ from ampc_jax.closed_loop import (
     SimConfig,
     baseline_config,
     config_for,
+    controller_for,
+    simulator_for,
     with_settings,
 )
 from ampc_jax.formulations import IntegratedADMM, LocalExplicit
@@ -22,16 +24,16 @@ pytestmark = pytest.mark.timeout(60)
 
 # --------------------------------------------------------------------------- --disable
 def test_disable_builds_reduced_topology():
-    c = SimConfig("cruise", disabled=("YRT",)).controller()
+    c = controller_for(SimConfig("cruise", disabled=("YRT",)))
     T, agents, objs = c.topology, c.agent_indices, c.objective_indices
     assert T.agent_names == ("DTR", "FDB") and agents == (0, 2)
     assert T.objective_names == ("LST",) and T.groups == ((0, 1),) and objs == (0,)
     np.testing.assert_array_equal(c.input_columns, [0, 2, 3])
-    c = SimConfig("stability", disabled=("VSC",)).controller()
+    c = controller_for(SimConfig("stability", disabled=("VSC",)))
     assert c.topology.agent_names == ("TCR", "RTV") and c.topology.objective_names == ("WSC",)
     assert c.objective_indices == (1,)
     np.testing.assert_array_equal(c.input_columns, [0, 1])
-    T = config_for("stability_dlc").controller().topology
+    T = controller_for(config_for("stability_dlc")).topology
     assert T.agent_names == ("TCR", "RTV", "FDB") and T.groups == ((1, 2), (0, 1))
     with pytest.raises(
         ValueError, match=r"^disable: 'VSC' is not an objective of the cruise example"
@@ -43,7 +45,7 @@ def test_disable_builds_reduced_topology():
         SimConfig("cruise", disabled=("LST", "YRT"))
     # with no MPC nothing is solved: no controller, and disabling every objective is allowed
     none = SimConfig("cruise", disabled=("LST", "YRT"), formulation="none")
-    assert none.controller() is None and none.simulator().controller is None
+    assert controller_for(none) is None and simulator_for(none).controller is None
 
 
 # --------------------------------------------------------------------------- solver options
@@ -86,8 +88,10 @@ def test_solver_options_defaults_and_pass_through(name, ex):
     assert c.integrated_rho_scale == d["integrated_rho_scale"]
     assert c.warm_shift == d["warm_shift"] and c.anderson == d["anderson"]
     assert hash(c) == hash(config_for(name))  # still hashable (static)
-    sim = c.simulator()
-    assert sim == config_for(name).simulator() and hash(sim) == hash(config_for(name).simulator())
+    sim = simulator_for(c)
+    assert sim == simulator_for(config_for(name)) and hash(sim) == hash(
+        simulator_for(config_for(name))
+    )
     le = sim.controller.solver
     assert isinstance(le, LocalExplicit)
     assert (le.anderson, le.max_iter) == (c.anderson, c.max_iter)
@@ -101,7 +105,7 @@ def test_solver_options_defaults_and_pass_through(name, ex):
     )
     # the integrated controller: its own rho factor, the same relaxation and tolerances
     ci = config_for(name, formulation="integrated")
-    ia = ci.simulator().controller.solver
+    ia = simulator_for(ci).controller.solver
     assert isinstance(ia, IntegratedADMM)
     assert ia.anderson == ia.merged.anderson == c.anderson
     pi = ci.loop_params().controller.solver
@@ -121,7 +125,7 @@ def test_disabled_objectives_keep_the_enabled_factors():
     lst = config_for("cruise_lane_change", disabled=("YRT",), rho_scale=(0.7, 0.3))
     assert lst.enabled_rho_scale == 0.7
     np.testing.assert_array_equal(lst.loop_params().controller.solver.rho, [0.7])
-    assert lst.controller().solver.n_rho == 1
+    assert controller_for(lst).solver.n_rho == 1
     wsc = config_for("stability_dlc", disabled=("VSC",), rho_scale=(0.7, 0.3))
     assert wsc.enabled_rho_scale == 0.3
     np.testing.assert_array_equal(wsc.loop_params().controller.solver.rho, [0.3])
@@ -137,7 +141,7 @@ def test_simulator_is_static_and_loop_params_carry_the_numbers():
     """What a compiled loop is specialised on (Simulator) does not change with the
     rho scales, relaxation, tolerances, weights or bounds; the horizon does."""
     base = config_for("cruise_lane_change", shadow=False)
-    sim = base.simulator()
+    sim = simulator_for(base)
     for kw in (
         {"rho_scale": (0.3, 3.0)},
         {"relaxation": 1.1},
@@ -146,18 +150,18 @@ def test_simulator_is_static_and_loop_params_carry_the_numbers():
     ):
         other = config_for("cruise_lane_change", shadow=False, **kw)
         assert other != base
-        assert other.simulator() == sim and hash(other.simulator()) == hash(sim), kw
+        assert simulator_for(other) == sim and hash(simulator_for(other)) == hash(sim), kw
         assert jax.tree.structure(other.loop_params()) == jax.tree.structure(base.loop_params())
     weights = with_settings(base, q_yrt=2.0e3, dtr_max=1500.0)
-    assert weights.simulator() == sim
+    assert simulator_for(weights) == sim
     assert jax.tree.structure(weights.loop_params()) == jax.tree.structure(base.loop_params())
     assert float(weights.loop_params().controller.settings.q_yrt) == 2.0e3
     longer = with_settings(base, horizon=3)
-    assert longer.simulator() != sim and longer.simulator().controller.horizon == 3
+    assert simulator_for(longer) != sim and simulator_for(longer).controller.horizon == 3
     # static options change the Simulator
     for kw in ({"max_iter": 50}, {"anderson": 1}, {"warm_shift": 0}, {"warm_start": False}):
-        assert config_for("cruise_lane_change", shadow=False, **kw).simulator() != sim, kw
-    assert config_for("cruise_lane_change").simulator() != sim  # the shadow on
+        assert simulator_for(config_for("cruise_lane_change", shadow=False, **kw)) != sim, kw
+    assert simulator_for(config_for("cruise_lane_change")) != sim  # the shadow on
 
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
@@ -219,7 +223,7 @@ def test_settings_replace_is_checked_by_simconfig_and_with_settings_works():
     base = config_for("cruise_lane_change", relaxation=1.2)
     c = with_settings(base, q_yrt=2000.0, horizon=3)
     assert c.settings == CruiseSettings(q_yrt=2000.0, horizon=3)
-    assert c.horizon == 3 and c.controller().topology.horizon == 3
+    assert c.horizon == 3 and controller_for(c).topology.horizon == 3
     assert c.relaxation == 1.2 and c.rho_scale == base.rho_scale  # the rest kept
     assert float(c.loop_params().controller.settings.q_yrt) == 2000.0
     assert base.settings == CruiseSettings()  # a copy, not an edit
@@ -266,9 +270,9 @@ def test_builders_sit_beside_what_they_build():
 
     c = config_for("cruise_lane_change")
     ctrl = controller_for(c)
-    assert ctrl == c.controller() and ctrl.horizon == c.horizon
+    assert ctrl == controller_for(c) and ctrl.horizon == c.horizon
     sim = simulator_for(c)
-    assert sim == c.simulator() and sim.controller == ctrl
+    assert sim == simulator_for(c) and sim.controller == ctrl
     assert sim.shadow == shadow_for(c, ctrl.topology) and sim.shadow.max_iter == c.shadow_max_iter
     quiet = config_for("cruise_lane_change", shadow=False)
     assert shadow_for(quiet, ctrl.topology) is None and simulator_for(quiet).shadow is None

@@ -18,9 +18,11 @@ from ampc_jax.closed_loop import (
     ControllerState,
     DriverInputs,
     config_for,
+    controller_for,
+    simulator_for,
     with_settings,
 )
-from ampc_jax.closed_loop.controller import OK_STATUS
+from ampc_jax.results import USABLE_STATUS
 from ampc_jax.vehicle import CONTROL_DT, SCENARIOS, CruiseSettings
 from ampc_jax.vehicle.manoeuvres import driver_step, initial_driver_state, initial_plant_state
 from ampc_jax.vehicle.plant import measure, plant_step
@@ -48,8 +50,8 @@ class Replay:
         self.res = res
         cfg = res.config
         self.config = cfg
-        self.ctrl = cfg.controller()
-        self.shadow = cfg.simulator().shadow
+        self.ctrl = controller_for(cfg)
+        self.shadow = simulator_for(cfg).shadow
         self.params = cfg.loop_params(F64)
         self.observed = shadow
         sc = jax.tree.map(lambda x: jnp.asarray(x, F64), SCENARIOS[res.scenario].scenario)
@@ -98,7 +100,7 @@ def test_step_reproduces_the_closed_loop(replay):
     """Controller.step, jitted on its own and fed the plant's measurement and the
     driver's inputs, gives the compiled loop's torques, inputs and iterations."""
     lg, cols = replay.res.log, replay.ctrl.input_columns
-    assert replay.ctrl == replay.config.simulator().controller
+    assert replay.ctrl == simulator_for(replay.config).controller
     assert len(replay.out) == 40
     assert len(replay.traces) == 1  # one trace of the step for the whole run
     for k, (tq, info) in enumerate(replay.out):
@@ -143,7 +145,7 @@ def test_nan_measurement_falls_back(replay, bad):
         nan_meas = meas._replace(F_y=meas.F_y.at[1].set(jnp.nan))
     tq, nxt, info = replay.step(state, p, nan_meas, drv)
     assert bool(info.fallback)
-    assert int(info.status) not in OK_STATUS or not np.all(np.isfinite(info.u_ctrl))
+    assert int(info.status) not in USABLE_STATUS or not np.all(np.isfinite(info.u_ctrl))
     assert np.all(np.isfinite(tq)) and np.all(np.isfinite(info.u))
     lb, ub = np.asarray(info.data.lb[0]), np.asarray(info.data.ub[0])
     assert np.all(np.isfinite(lb)) and np.all(np.isfinite(ub))
@@ -211,7 +213,7 @@ def test_one_compiled_step_serves_every_parameter_point(cruise_replay):
         config_for(name, rho_scale=(1.0, 0.2), relaxation=1.7, tol_primal=1e-4, tol_dual=1e-4),
         with_settings(config_for(name), **{weight: 0.2 * getattr(ex.settings_type(), weight)}),
     ]
-    assert all(c.controller() == ctrl for c in configs)
+    assert all(controller_for(c) == ctrl for c in configs)
     # the replay's jitted step: traced once for the 40 steps of its run (and the
     # other tests' calls), it serves every point without tracing again
     f = replay.step

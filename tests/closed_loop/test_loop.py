@@ -10,9 +10,11 @@ import pytest
 import ampc_jax.closed_loop.loop as S
 from ampc_jax.closed_loop import (
     config_for,
+    controller_for,
     run_closed_loop,
     simulate,
     simulate_batch,
+    simulator_for,
     with_settings,
 )
 from ampc_jax.reference import solve_reference
@@ -29,7 +31,7 @@ def _check_bounds(res):
     assert np.all(np.isfinite(lg.u)) and np.all(np.isfinite(lg.torques))
     lb = np.asarray(lg.data.lb[:, 0, :])
     ub = np.asarray(lg.data.ub[:, 0, :])
-    cols = res.config.controller().input_columns
+    cols = controller_for(res.config).input_columns
     u = lg.u[:, cols]
     assert np.all(u >= lb - 1e-9) and np.all(u <= ub + 1e-9)
 
@@ -66,7 +68,7 @@ def test_stability_closed_loop_finite_and_bounded(stability_run):
 
 def test_shadow_e_sub_matches_clarabel(cruise_run, stability_run):
     for res in (cruise_run, stability_run):
-        c = res.config.controller()
+        c = controller_for(res.config)
         T, cols = c.topology, c.input_columns
         for k in (5, 20, 39):
             data = jax.tree.map(lambda x, k=k: np.asarray(x[k]), res.log.data)
@@ -229,7 +231,7 @@ def sweep():
     """One jitted closed loop run at the five points of ``_SWEEP``: its trace count,
     the simulator, the points' LoopParams and logs."""
     cfg = config_for("cruise_lane_change", shadow=False)
-    sim = cfg.simulator()
+    sim = simulator_for(cfg)
     sc = SCENARIOS["cruise_lane_change"].scenario
     configs = [
         config_for("cruise_lane_change", shadow=False, rho_scale=r, relaxation=a) for r, a in _SWEEP
@@ -261,7 +263,7 @@ def test_one_compiled_loop_serves_five_rho_points(sweep):
     five separately compiled runs (each with its point's numbers as constants)."""
     sim, sc = sweep["sim"], sweep["sc"]
     # every point has the same static structure: one Simulator, one params tree
-    assert all(c.simulator() == sim for c in sweep["configs"])
+    assert all(simulator_for(c) == sim for c in sweep["configs"])
     assert sweep["traces"] == 1 and sweep["cache_size"] == 1
     for (r, a), p in zip(_SWEEP, sweep["params"], strict=True):
         np.testing.assert_array_equal(p.controller.solver.rho, r)

@@ -23,8 +23,8 @@ import numpy as np
 import pytest
 from jax import export
 
-from ampc_jax.closed_loop import config_for
-from ampc_jax.closed_loop.controller import OK_STATUS
+from ampc_jax.closed_loop import config_for, controller_for
+from ampc_jax.results import USABLE_STATUS
 from ampc_jax.runtime.artefact import ARTEFACT_FORMAT, ArtefactError, export_step, load_artefact
 from ampc_jax.runtime.signals import BUS_FIELDS, bus_measurement, bus_vector
 from ampc_jax.runtime.step import (
@@ -61,7 +61,7 @@ def _report(status: int = 0, fallback: bool = False, violation: float = 0.0) -> 
 
 def test_command_problem_accepts_a_good_command() -> None:
     assert command_problem(np.array([-120.0, -80.0, 350.0, -40.0]), _report()) is None
-    # max_iter_reached (1) is usable: its inputs are applied (OK_STATUS)
+    # max_iter_reached (1) is usable: its inputs are applied (USABLE_STATUS)
     assert command_problem(np.zeros(4), _report(status=1)) is None
     # each range's ends are inside it
     lo = np.array([w.min_nm for w in ACTUATORS.wheels])
@@ -77,9 +77,9 @@ def test_command_problem_refuses_a_fallback() -> None:
     assert why is not None and "fallback True" in why
 
 
-@pytest.mark.parametrize("status", [s for s in (2, 3, 4, 5, -1, 99) if s not in OK_STATUS])
+@pytest.mark.parametrize("status", [s for s in (2, 3, 4, 5, -1, 99) if s not in USABLE_STATUS])
 def test_command_problem_refuses_an_unusable_status(status: int) -> None:
-    # the bus applies what the controller's guard applies (OK_STATUS), nothing else
+    # the bus applies what the controller's guard applies (USABLE_STATUS), nothing else
     why = command_problem(np.zeros(4), _report(status=status))
     assert why is not None and f"status {status}" in why
 
@@ -206,7 +206,7 @@ def test_compiled_step_is_the_controllers_step(cfg, drive) -> None:
     """The compiled step = Controller.step on bus_measurement's measurement, the
     configuration's controller and parameters, warm state carried along."""
     buses, outs = drive
-    ctrl = cfg.controller()
+    ctrl = controller_for(cfg)
     params = cfg.loop_params(jnp.float64).controller
     direct = jax.jit(lambda s, m, d: ctrl.step(s, params, m, d))
     state = ctrl.init(jnp.float64)

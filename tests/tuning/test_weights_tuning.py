@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ampc_jax.closed_loop import SimConfig
+from ampc_jax.closed_loop import SimConfig, controller_for, simulator_for
 from ampc_jax.closed_loop.controller import Controller
 from ampc_jax.sweep.families import family
 from ampc_jax.tuning.weights import (
@@ -41,15 +41,15 @@ def test_fixed_iterations_is_validated(bad):
 @pytest.mark.timeout(40)
 def test_fixed_iterations_default_and_pass_through():
     assert SimConfig().fixed_iterations is None
-    assert SimConfig().controller().fixed_iterations is None
-    assert SimConfig(fixed_iterations=np.int64(7)).controller().fixed_iterations == 7
+    assert controller_for(SimConfig()).fixed_iterations is None
+    assert controller_for(SimConfig(fixed_iterations=np.int64(7))).fixed_iterations == 7
 
 
 @pytest.mark.timeout(240)  # compiles the loop and its gradient: ~55 s on a loaded 2-core machine
 def test_closed_loop_gradient_matches_central_differences(cases):
     """d L / d log w over a 20-step run with K = 3 against central differences."""
     cfg = replace(cases.config, fixed_iterations=3, shadow=False)
-    sim, params = cfg.simulator(), cfg.loop_params(jnp.float64)
+    sim, params = simulator_for(cfg), cfg.loop_params(jnp.float64)
     fields = weight_fields(cfg.settings)
     sc = jax.tree.map(lambda x: jnp.asarray(x, jnp.float64)[:1], cases.scenarios)
     opts = LossOptions((5, 20), slip_limit=0.005, slip_temperature=0.002)
