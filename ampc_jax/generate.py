@@ -53,7 +53,7 @@ def random_problem(
     bound : input bounds are about +-bound (randomised, asymmetric).
     reference_scale : references large enough that some bounds are active.
     rho_spread : scale the objectives' weights differently, so eq.opt_ro gives
-        unequal rho_j (NOTES item 14).
+        unequal rho_j (paper-notes item 14).
     outputs : outputs per objective (1 .. states_per_objective): output r of
         objective j observes state r of its subsystem (plus, for r >= 1, a random
         share of state 0), each with its own reference.

@@ -4,9 +4,9 @@ All functions are pure and jittable: the model data are traced arrays, only
 sizes are static, so a time-varying model is rebuilt inside one compiled step.
 
 Stacking convention: inputs are stacked step by step,
-``Ubar = [U^(0); U^(1); ...; U^(N_p-1)]`` (NOTES item 5), outputs
+``Ubar = [U^(0); U^(1); ...; U^(N_p-1)]`` (paper-notes item 5), outputs
 ``Ybar = [C X^(1); ...; C X^(N_p)]`` and the disturbance
-``Wbar = [W_d^(0); ...; W_d^(N_p-1)]`` (NOTES item 18: W is not multiplied by C
+``Wbar = [W_d^(0); ...; W_d^(N_p-1)]`` (paper-notes item 18: W is not multiplied by C
 again). With ``X^(k+1) = A X^(k) + B U^(k) + W^(k)``,
 
     Ybar = Y_x X^(0) + Y_u Ubar + Y_w Wbar,
@@ -16,7 +16,7 @@ again). With ``X^(k+1) = A X^(k) + B U^(k) + W^(k)``,
 The local cost of eq.ConsensusADMM_F3 then reads ``1/2 U' H U + E' U + const``
 with ``H = 2 (Y_u' Qbar Y_u + Rbar)`` and
 ``E = 2 Y_u' Qbar (Y_x X^(0) + Y_w Wbar - Xbar_ref)`` (eq.F3_primal_1), where the
-reference belongs to the predicted steps 1..N_p (NOTES item 19).
+reference belongs to the predicted steps 1..N_p (paper-notes item 19).
 """
 
 from __future__ import annotations

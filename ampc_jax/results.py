@@ -140,7 +140,7 @@ class SolveResult(NamedTuple):
     status : a :class:`Status` code (int32 inside jit); :func:`usable` says
         whether ``u`` may be applied.
     primal_residual, dual_residual : (n_obj,) squared residual norms per
-        objective, ||r_j||^2 and ||s_j||^2 (eq.Convergence; NOTES item 17).
+        objective, ||r_j||^2 and ||s_j||^2 (eq.Convergence; paper-notes item 17).
     rho : (n_obj,) penalty parameters used.
     state : the final solver state (for warm starts), or ``None``.
     certificate : for a solve to tolerance that did not converge, the

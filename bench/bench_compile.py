@@ -281,7 +281,13 @@ def main(argv: list[str] | None = None) -> int:
             shutil.rmtree(cache, ignore_errors=True)
             cold = run_one(cmd, first, work, cache)
             warm = None if args.no_warm else run_one(cmd, first, work, cache)
-            rows[name] = {"argv": cmd, "cold": cold, "warm": warm}
+            # the command as a reader types it (repository-relative, {w}: any scratch folder)
+            rel = str(problem.relative_to(ROOT))
+            rows[name] = {
+                "argv": [a.replace("{p}", rel) for a in template],
+                "cold": cold,
+                "warm": warm,
+            }
             w = warm or {}
             rc = cold["rc"] if not warm else f"{cold['rc']}/{warm['rc']}"
             print(

@@ -30,7 +30,7 @@ closed loops
 generated families
     ``ampc_jax.generate.random_problem(seed, J, shared="chain")`` for seeds
     0 .. ``--seeds`` - 1 and J in ``--objectives`` (default 2 3 4; the paper only
-    decomposes into two groups, NOTES item 12). Each formulation at its default
+    decomposes into two groups, paper-notes item 12). Each formulation at its default
     ``params`` (rho factor 1) and IntegratedADMM solve every problem cold to
     ``--tol`` (eps_r = eps_s, default 1e-8) with ``max_iter`` ``--max-iter``; e_sub
     = max_i |u0_i - u0_i*| against Clarabel (``ampc_jax.reference.solve_reference``),

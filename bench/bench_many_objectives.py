@@ -1,7 +1,7 @@
 """Convergence with two to four objectives: iterations to tolerance of every formulation.
 
 The paper decomposes into two objectives only and calls more an open question
-(NOTES item 12). For generated problems with J = 2, 3, 4 objectives, shared
+(paper-notes item 12). For generated problems with J = 2, 3, 4 objectives, shared
 agents (``shared="chain"``: an agent between neighbours; ``"both"``: also one
 agent shared by all) and active bounds
 (``ampc_jax.generate.random_problem(seed, J, shared=...)``), prints per

@@ -55,7 +55,7 @@ def test_quadratic_cost_matches_direct_cost():
 
     def J(U):
         X = simulate(A, B, x0, U, W)
-        e = X @ C.T - ref  # reference of C X^(k+1), NOTES item 19
+        e = X @ C.T - ref  # reference of C X^(k+1), paper-notes item 19
         return np.sum(np.einsum("ki,ij,kj->k", e, Q, e)) + np.sum(np.einsum("ki,ij,kj->k", U, R, U))
 
     U = rng.standard_normal((N, nb))

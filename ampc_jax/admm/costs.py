@@ -1,4 +1,4 @@
-"""Each objective's local cost in the padded layout (eq.F3_primal_1, NOTES items 8, 18, 19).
+"""Each objective's local cost in the padded layout (eq.F3_primal_1, paper-notes items 8, 18, 19).
 
 Objective j's local cost is ``1/2 U_j' H_j U_j + E_j' U_j`` with
 ``H_j = 2 (Y_u,j' Qbar_j Y_u,j + I (x) R_(j) / m)`` and
@@ -58,7 +58,7 @@ def padded_costs(
     """H_j, E_j of every objective in the padded layout, all objectives at once.
 
     Same formulas as :func:`~ampc_jax.prediction.quadratic_cost` (eq.F3_primal_1,
-    NOTES items 8, 18, 19): H_j = 2 (Y_u,j' Qbar_j Y_u,j + I (x) R_(j) / m),
+    paper-notes items 8, 18, 19): H_j = 2 (Y_u,j' Qbar_j Y_u,j + I (x) R_(j) / m),
     E_j = 2 Y_u,j' Qbar_j (Y_x,j X^(0) + Y_w,j Wbar - ref_j). The matrix powers
     and the free response are shared by all objectives; padded inputs get an
     identity block in H, padded outputs zero weight. ``with_H=False`` skips
@@ -117,7 +117,7 @@ def unpad_matrix(M: Any, n_u: int, U: int, horizon: int) -> Any:
 # alone (2 s of ``ampc solve``'s start, ``bench/bench_compile.py``).
 @partial(jax.jit, static_argnums=0)
 def local_costs(topology: Topology, data: ProblemData) -> tuple[tuple, tuple]:
-    """(H_j, E_j) for every objective (eq.F3_primal_1, NOTES items 8, 18, 19)."""
+    """(H_j, E_j) for every objective (eq.F3_primal_1, paper-notes items 8, 18, 19)."""
     lay = padded_layout(topology)
     U = lay.cols.shape[1]
     N = topology.horizon

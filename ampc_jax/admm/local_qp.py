@@ -32,7 +32,7 @@ control step (``docs/formulations.md`` gives the measurement that decided it,
 
 sigma_j is Ghadimi et al.'s choice for this splitting (eq.opt_ro with
 A = Abar_j): for rows that are boxes it is sqrt(lambda_min(P_j)
-lambda_max(P_j)) / 2 (NOTES item 16); for general rows the box form is
+lambda_max(P_j)) / 2 (paper-notes item 16); for general rows the box form is
 scaled by the largest diagonal entry of A_in,j'A_in,j instead of 2
 (:func:`inner_rho`). It only sets the inner convergence rate.
 """
@@ -71,7 +71,7 @@ class InnerState(NamedTuple):
 
 def inner_rho(lam_min: Any, lam_max: Any, A: Any) -> Any:
     """(J,) sigma_j = sqrt(lambda_min lambda_max of P_j) / a_j, a_j the largest
-    diagonal entry of A_in,j'A_in,j (2 for two-sided boxes: NOTES item 16)."""
+    diagonal entry of A_in,j'A_in,j (2 for two-sided boxes: paper-notes item 16)."""
     a = jnp.max(jnp.sum(A * A, axis=1), axis=-1)
     return jnp.sqrt(lam_min * lam_max) / jnp.where(a > 0, a, 1.0)
 

@@ -218,7 +218,7 @@ def optimal_rho(H: Any, Ain: Any, horizon: int, rank: int | None = None) -> Any:
       diagonal, L = I (x) chol(A_in,j' A_in,j)) they are 1/mu for mu the
       eigenvalues of G = L^-1 H L^-T, so rho* = sqrt(mu_min mu_max): no
       threshold, so float32 does not pick rounding noise (jax-facts). For
-      two-sided boxes this is sqrt(lambda_min(H) lambda_max(H)) / 2 (NOTES 16).
+      two-sided boxes this is sqrt(lambda_min(H) lambda_max(H)) / 2 (paper-notes item 16).
     * Otherwise ``rank`` = rank(A_in,j) per step gives the number of non-zero
       eigenvalues, N_p * rank, of L_H^-1 Abar'Abar L_H^-T (L_H = chol(H)):
       the known rank replaces a numerical threshold.

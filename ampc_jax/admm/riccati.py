@@ -170,7 +170,7 @@ def solve(f: RiccatiFactor, v: Any) -> Any:
 
 def linear_cost(A: Any, Bu: Any, Qx: Any, Cr: Any, x0: Any, w: Any) -> Any:
     """E_j = Y_u,j' 2Qbar_j (Y_x,j x0 + Y_w,j Wbar - ref_j) by one forward sweep (the
-    free response) and one adjoint sweep (eq.F3_primal_1; NOTES items 18, 19:
+    free response) and one adjoint sweep (eq.F3_primal_1; paper-notes items 18, 19:
     the reference belongs to the predicted steps 1..N_p).
 
     A : (n_x, n_x); Bu : (J, n_x, U); Qx : (J, n_x, n_x) C_j' 2Q_j C_j;

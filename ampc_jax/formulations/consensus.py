@@ -14,18 +14,18 @@ U_j - Z_j = 0 (eq.ConsensusADMM; Z_j the group's part of Z). Per iteration:
   ``B_in,j = [B_d(i) | i in S_j]`` is read as the rows' coefficients on the
   agents outside S_j, which is what the text around it describes). J_j carries
   the objective's tracking cost, plus (Formulation 1 only) its agents' input
-  weights shared out as R_(i) / m_(i) (eq.F1_obj, NOTES item 8). The QP is
+  weights shared out as R_(i) / m_(i) (eq.F1_obj, paper-notes item 8). The QP is
   solved by an inner ADMM on a factorisation cached per control step
   (:mod:`ampc_jax.admm.local_qp`), ``inner_iterations`` inner steps per
   outer iteration, warm-started from the last.
 * global update, the exact minimiser of the augmented Lagrangian over Z for
-  per-objective rho_j (the multiplier term is gamma_j'(U_j - Z_j), NOTES
+  per-objective rho_j (the multiplier term is gamma_j'(U_j - Z_j), paper-notes
   item 13), per agent i over its objectives S_(i)::
 
       Formulation 1 (eq.F1_dual):  Z_(i) = sum_j (gamma_j(i) + rho_j U_j(i)) / sum_j rho_j
       Formulation 2 (eq.F2_dual):  Z_(i) = (2 R_(i) + sum_j rho_j I)^-1 sum_j (gamma_j(i) + rho_j U_j(i))
 
-  (NOTES items 7 and 14: a matrix R_(i), rho-weighted; after the first
+  (paper-notes items 7 and 14: a matrix R_(i), rho-weighted; after the first
   iteration sum_j gamma_j(i) = 0 in Formulation 1, so eq.F1_dual's average is
   the rho-weighted average of the copies.)
 * dual update (alg:1 step 9): gamma_j += rho_j (U_j - Z_j).

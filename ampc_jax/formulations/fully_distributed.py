@@ -1,9 +1,9 @@
 """Formulation 1, Fully Distributed (eq.F1_obj to eq.F1_dual).
 
 Every objective's local QP carries its tracking cost and its agents' input
-weights shared out as R_(i) / m_(i) (eq.F1_obj, NOTES item 8), with the
+weights shared out as R_(i) / m_(i) (eq.F1_obj, paper-notes item 8), with the
 inequality rows that involve its agents (eq.F1_primal, eq.F1_1); the global
-step is the rho-weighted average of the copies (eq.F1_dual, NOTES item 14).
+step is the rho-weighted average of the copies (eq.F1_dual, paper-notes item 14).
 The machinery is :class:`~ampc_jax.formulations.consensus.ConsensusADMM`'s.
 """
 

@@ -16,7 +16,7 @@ and consensus ADMM iterates, per objective j and constraint row c:
       U_j = -(H_j + rho_j Abar_j' Abar_j)^-1 [E_j + Abar_j' (rho_j (Z_j - bbar_j) + gamma_j)]
 
 * global update, the max-projection (eq.F3_dual) in its exact form for
-  per-objective rho_j (NOTES item 14: the rho-weighted average; the printed
+  per-objective rho_j (paper-notes item 14: the rho-weighted average; the printed
   equal-weight average converges to the wrong point when the rho_j differ)::
 
       v_jc = (-Abar_j U_j - gamma_j / rho_j + bbar_j)_c
@@ -26,17 +26,17 @@ and consensus ADMM iterates, per objective j and constraint row c:
 
       gamma_j += rho_j (Abar_j U_j - bbar_j + Z_j)
 
-* stopping rule (eq.Convergence, per objective, NOTES items 6 and 17)::
+* stopping rule (eq.Convergence, per objective, paper-notes items 6 and 17)::
 
       ||r_j||^2 = ||Abar_j U_j - bbar_j + Z_j||^2 <= eps_r,
       ||s_j||^2 = ||rho_j (Z_j^q - Z_j^(q-1))||^2 <= eps_s     (``dual_residual="paper"``)
       ||Z_j^q - Z_j^(q-1)||^2 <= eps_s                          (default, ``"slack"``)
 
 Objective j's local cost carries its outputs' tracking cost and the input
-weights of its agents shared out as R_(i) / m_(i) (eq.F1_obj with NOTES item 8).
+weights of its agents shared out as R_(i) / m_(i) (eq.F1_obj with paper-notes item 8).
 Objective j carries the constraint rows whose agents all lie in S_j
 (:meth:`Topology.group_rows`); a shared agent's box rows are shared by all its
-objectives, which is what makes their copies agree (NOTES item 10).
+objectives, which is what makes their copies agree (paper-notes item 10).
 
 The default rho_j is eq.opt_ro (:mod:`ampc_jax.admm.rho`), its extreme
 eigenvalues estimated by power iteration (``rho_method="eigh"`` for the exact
@@ -406,7 +406,7 @@ class LocalExplicit(ADMMSolver):
         # the stability step's queue went from 8 to 9, and the step took 18 us longer)
         bz = setup.b - Z_old
         AUr = bz + setup.relaxation * (AU - bz)
-        # eq.F3_dual, rho-weighted (NOTES 14): Z_c = max(0, sum_j rho_j v_jc / sum_j rho_j)
+        # eq.F3_dual, rho-weighted (paper-notes item 14): Z_c = max(0, sum_j rho_j v_jc / sum_j rho_j)
         rv = mask(rho * (setup.b - AUr) - st.gamma)  # rho_j v_j on the rows j carries
         if lay.compact:
             # sum over the objectives carrying each row: static gathers (a padded zero

@@ -3,7 +3,7 @@
 The local QPs carry only the objectives' tracking costs (eq.F2_primal), with
 the same inequality rows as Formulation 1; the input weights act in the
 global step, Z_(i) = (2 R_(i) + sum_j rho_j I)^-1 sum_j (gamma_j(i) + rho_j U_j(i))
-(eq.F2_dual with NOTES items 5, 7 and 14). The machinery is
+(eq.F2_dual with paper-notes items 5, 7 and 14). The machinery is
 :class:`~ampc_jax.formulations.consensus.ConsensusADMM`'s.
 """
 

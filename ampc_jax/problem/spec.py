@@ -280,7 +280,7 @@ class Objective:
     Q : (n_y, n_y) weight Q_j (positive semi-definite: a zero weight on an
         output is allowed), or its diagonal.
     ref : (n_y,) held over the horizon, or (N_p, n_y) for predicted steps 1..N_p
-        (NOTES item 19).
+        (paper-notes item 19).
     agents : names of the agent group S_j; derived from the model when omitted.
     """
 

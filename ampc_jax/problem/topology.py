@@ -9,7 +9,7 @@ row ``+e_k`` for every input with a finite upper bound, one row ``-e_k`` for
 every input with a finite lower bound, then the general rows of each
 ``constraints`` entry. Which rows exist is static (a bound's finiteness is part
 of the topology); their right-hand sides are data and may differ per step
-(NOTES item 11: the TCR agent's bound moves with the driver's torque).
+(paper-notes item 11: the TCR agent's bound moves with the driver's torque).
 
 A :class:`Topology` is hashable, so it is a static argument of compiled steps;
 the numbers live in :class:`~ampc_jax.problem.data.ProblemData`.
@@ -211,7 +211,7 @@ class Topology:
         )
 
     def check_local_explicit(self) -> None:
-        """Local Explicit's structural requirements (NOTES item 10).
+        """Local Explicit's structural requirements (paper-notes item 10).
 
         * every input appears in at least one constraint row;
         * every constraint row lies within one objective's group (so some
@@ -227,7 +227,7 @@ class Topology:
             raise ProblemError(
                 f"agents[{i}] ({self.agent_names[i]}): input {int(k) - o[i]} appears in no "
                 f"constraint row; Local Explicit needs every input bounded (paper, after "
-                f"eq.F3_multiplier; NOTES item 10): give the agent finite 'lb' and 'ub' (a "
+                f"eq.F3_multiplier; paper-notes item 10): give the agent finite 'lb' and 'ub' (a "
                 f"bound wider than any input it will take leaves the optimum unchanged), put "
                 f"the input in a 'constraints' row, or solve with the integrated formulation"
             )

@@ -1,4 +1,4 @@
-"""ampc_jax.admm.rho: eq.opt_ro exactly (NOTES item 16 and the definition), its
+"""ampc_jax.admm.rho: eq.opt_ro exactly (paper-notes item 16 and the definition), its
 power-iteration estimate, and against a brute-force grid of rho."""
 
 from typing import Any

@@ -330,7 +330,7 @@ def test_bad_problem_files_go_to_stderr(capsys, tmp_path):
     assert main(["solve", str(broken)]) == 2
     err = capsys.readouterr().err
     assert err.startswith("ampc: error: ") and "broken.json" in err
-    # agent c without bounds is on no constraint row (NOTES item 10)
+    # agent c without bounds is on no constraint row (paper-notes item 10)
     free = _problem_file(tmp_path)
     d = json.loads(open(free).read())
     d["agents"][2].update(lb=[float("-inf")], ub=[float("inf")])

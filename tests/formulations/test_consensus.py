@@ -36,7 +36,7 @@ def relative_error(u0, ref):
 )
 def test_reaches_the_integrated_optimum(kind, J, shared):
     """First-step inputs within 1e-3 relative of Clarabel's, with unequal rho_j
-    (``rho_spread``: weights 1x, 10x, 100x apart; NOTES item 14) and active bounds."""
+    (``rho_spread``: weights 1x, 10x, 100x apart; paper-notes item 14) and active bounds."""
     problems = [random_problem(s, J, shared=shared) for s in range(3)]
     T = problems[0].topology
     f = kind(T, max_iter=40000, inner_iterations=5)

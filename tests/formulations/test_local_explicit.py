@@ -59,7 +59,7 @@ def test_matches_integrated_optimum(n_obj, shared):
     assert LocalExplicit(T).kkt_solve.woodbury  # one output, several inputs per objective
     res, active = compare_batch(problems, LocalExplicit(T, **TIGHT))
     assert active > 0, "generated problems must have active constraints"
-    # per-objective rho differ (NOTES item 14 is exercised)
+    # per-objective rho differ (paper-notes item 14 is exercised)
     rho = np.asarray(res.rho)
     assert np.max(rho.max(1) / rho.min(1)) > 2
 
@@ -129,7 +129,7 @@ def test_dense_factorisation_matches_integrated_optimum(n_obj, shared):
 
 @pytest.mark.parametrize("shared", ["chain", "both"])
 def test_four_objectives_reach_the_integrated_optimum(shared):
-    """Beyond the paper's two groups (NOTES 12): four objectives, shared agents."""
+    """Beyond the paper's two groups (paper-notes item 12): four objectives, shared agents."""
     problems = [random_problem(seed, 4, shared=shared) for seed in range(3)]
     _, active = compare_batch(problems, LocalExplicit(problems[0].topology, **TIGHT))
     assert active > 0
@@ -163,7 +163,7 @@ def test_bad_solver_settings_name_the_field():
 
 
 def test_unequal_given_rho_still_exact():
-    """NOTES item 14: with rho_j differing 50x the rho-weighted global step stays exact."""
+    """paper-notes item 14: with rho_j differing 50x the rho-weighted global step stays exact."""
     problems = [random_problem(seed, 2, shared="all") for seed in range(6)]
     T = problems[0].topology
     solver = LocalExplicit(T, rho_method="given", **TIGHT)
@@ -463,7 +463,7 @@ def test_gradient_wrt_Q_with_padded_outputs():
 
 
 def test_three_objectives_convergence_measured():
-    """Three groups converge (NOTES items 12 and 15): iterations stay bounded."""
+    """Three groups converge (paper-notes items 12 and 15): iterations stay bounded."""
     problems = [random_problem(seed, 3, shared="both") for seed in range(8)]
     solver = LocalExplicit(problems[0].topology, max_iter=20000)
     q = solver.params(tol_primal=1e-8, tol_dual=1e-8)
@@ -553,7 +553,7 @@ def test_bad_anderson_names_the_field():
             LocalExplicit(T, anderson=bad)
 
 
-# ------------------------------------------------ dual_residual="paper" (README, NOTES 6, 17)
+# ------------------------------------------------ dual_residual="paper" (README, paper-notes items 6, 17)
 @pytest.mark.timeout(120)
 def test_paper_dual_residual_is_rho_times_slack_change():
     """``dual_residual="paper"`` tests s_j = rho_j (Z_j^q - Z_j^(q-1)) (eq.Convergence)

@@ -257,7 +257,7 @@ def test_uncovered_input_refused_for_local_explicit():
     p = Problem.from_dict(d)  # fine for the integrated MPC
     with pytest.raises(
         ProblemError,
-        match=r"agents\[2\] \(c\): input 0 appears in no constraint row.*NOTES item 10",
+        match=r"agents\[2\] \(c\): input 0 appears in no constraint row.*paper-notes item 10",
     ) as e:
         p.check_local_explicit()
     # the message suggests the fix

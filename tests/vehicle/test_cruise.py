@@ -1,7 +1,7 @@
 """Tests of ampc_jax.vehicle.cruise: the cruise-control model (eq.CC_system) against
 hand-derived moment balances.
 
-Printed-paper deviations pinned here: NOTES items 1 (C rows, in
+Printed-paper deviations pinned here: paper-notes items 1 (C rows, in
 test_vehicle_models.py), 3 (RTV yaw entry) and 9 (the corrected affine term).
 """
 
@@ -34,7 +34,7 @@ def test_cruise_shapes_and_entries(make_meas):
     )
     # DTR: force T/R_w on the mass -> dt/(m R_w)
     np.testing.assert_allclose(cm.B[0][:, 0], [DT / (P.m * P.R_w), 0, 0], rtol=1e-14)
-    # RTV: +T on RR, -T on LL -> yaw moment T_w T / R_w (NOTES item 3 form)
+    # RTV: +T on RR, -T on LL -> yaw moment T_w T / R_w (paper-notes item 3 form)
     np.testing.assert_allclose(cm.B[1][:, 0], [0, 0, DT * P.T_w / (P.I_z * P.R_w)], rtol=1e-14)
     # FDB: brake torque T on FL at (a, +T_w/2), wheel turned by delta
     c, s = np.cos(steer), np.sin(steer)
@@ -71,7 +71,7 @@ def test_str_disturbance_moment_balance(make_meas):
 
 
 def test_cruise_corrected_vs_literal_affine_term(make_meas):
-    """NOTES item 9: corrected W_d makes the one-step prediction exact at X^(0)."""
+    """paper-notes item 9: corrected W_d makes the one-step prediction exact at X^(0)."""
     m = make_meas(v_x=15.0, v_y=0.4, r=0.3, F_y=[0.0] * 4)
     lit = cruise_control_model(m, 0.0, 15.0, 1.0, P, CruiseSettings(literal=True))
     cor = cruise_control_model(m, 0.0, 15.0, 1.0, P, CruiseSettings())
@@ -100,7 +100,7 @@ def test_literal_flag_traced(make_meas):
     # both values of the traced flag select their own form (one compiled function)
     np.testing.assert_allclose(f(True), w_true, rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(f(False), w_false, rtol=1e-12, atol=1e-15)
-    # and the forms differ by the coupling correction (NOTES item 9), so a flag
+    # and the forms differ by the coupling correction (paper-notes item 9), so a flag
     # ignored under tracing could not pass both lines above
     np.testing.assert_allclose(
         w_false - w_true, DT * np.array([-0.2 * 0.3, 0.2 * 15.0, 0.0]), rtol=1e-12, atol=1e-15

@@ -1,7 +1,7 @@
 """Tests of ampc_jax.vehicle.stability: the holistic stability model (eq.VSC_system)
 against hand-derived balances, and a reference MPC on the plant.
 
-Printed-paper deviations pinned here: NOTES items 3 (RTV yaw entry), 4 (the
+Printed-paper deviations pinned here: paper-notes items 3 (RTV yaw entry), 4 (the
 wheel-speed reference), 11 (the moving TCR bound) and the wheel reaction of
 the corrected affine term.
 """
@@ -81,7 +81,7 @@ def test_stability_corrected_vs_literal_wheel_reaction(make_meas):
 
 
 def test_tcr_bound_moves_with_driver_torque(make_meas):
-    """NOTES item 11: TCR in [0, T_DTR]; braking (T_DTR < 0): [T_DTR, 0]."""
+    """paper-notes item 11: TCR in [0, T_DTR]; braking (T_DTR < 0): [T_DTR, 0]."""
     s = StabilitySettings()
     for T in (1500.0, 300.0, 0.0, -700.0):
         sm = stability_control_model(make_meas(), 0.0, T, 1.0, P, s)
@@ -95,7 +95,7 @@ def test_tcr_bound_moves_with_driver_torque(make_meas):
 
 
 def test_wheel_speed_reference(make_meas):
-    """NOTES item 4: omega_ref = v_x (1 + S) / R_w, S negative while the driver
+    """paper-notes item 4: omega_ref = v_x (1 + S) / R_w, S negative while the driver
     brakes and zero while the driver applies no torque."""
     om = wheel_speed_reference(10.0, 500.0, P, 0.15)
     np.testing.assert_allclose(om, [10 * 1.15 / P.R_w] * 2)

@@ -2,7 +2,7 @@
 JAX properties, the settings (validation, pytree), and both models against the
 nonlinear plant's response to each agent's input.
 
-Each printed-paper deviation (NOTES items 1-4, 9, 11) is pinned in this
+Each printed-paper deviation (paper-notes items 1-4, 9, 11) is pinned in this
 folder: items 1, 2 here, the others in test_cruise.py and test_stability.py.
 """
 
@@ -34,7 +34,7 @@ DT = 0.05
 def test_topology_constants():
     assert CRUISE.agents == ("DTR", "RTV", "FDB")
     assert CRUISE.objectives == ("LST", "YRT")
-    # NOTES item 1: LST observes v_x, YRT the yaw rate (printed swapped).
+    # paper-notes item 1: LST observes v_x, YRT the yaw rate (printed swapped).
     assert CRUISE.states == ("v_x", "v_y", "yaw_rate")
     assert CRUISE.outputs["LST"] == ((1.0, 0.0, 0.0),)
     assert CRUISE.outputs["YRT"] == ((0.0, 0.0, 1.0),)
@@ -50,7 +50,7 @@ def test_topology_constants():
 
 
 def test_table_parameters():
-    # Table I; NOTES item 2: I_w is a wheel inertia (kg m^2), T_w the track.
+    # Table I; paper-notes item 2: I_w is a wheel inertia (kg m^2), T_w the track.
     assert (P.m, P.I_z, P.a, P.b, P.L, P.R_w, P.K_us, P.T_w) == (
         2272.0,
         4600.0,
@@ -66,7 +66,7 @@ def test_table_parameters():
 
 
 def test_unit_rtv_gives_yaw_acceleration(make_meas):
-    """A unit RTV torque: yaw acceleration T_w/(I_z R_w) (NOTES item 3), both examples."""
+    """A unit RTV torque: yaw acceleration T_w/(I_z R_w) (paper-notes item 3), both examples."""
     cm = cruise_control_model(make_meas(), 0.0, 15.0, 1.0, P, CruiseSettings())
     sm = stability_control_model(make_meas(), 0.0, 500.0, 1.0, P, StabilitySettings())
     expect = P.T_w / (P.I_z * P.R_w)
@@ -133,7 +133,7 @@ def test_corrected_models_predict_plant_better_than_literal():
     """One-step predictions from a cornering / launching operating point of the plant.
 
     Cross-checks the signs of A_d, B_d and W_d against the independent plant; the
-    corrected affine forms (NOTES item 9 and the wheel reaction) are far closer.
+    corrected affine forms (paper-notes item 9 and the wheel reaction) are far closer.
     """
 
     def run(s, steer, tq, mu, n):
