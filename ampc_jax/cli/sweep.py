@@ -80,14 +80,15 @@ def _solver_defaults(args: argparse.Namespace) -> tuple[float, int, str]:
     from ..sweep.families import FAMILIES
     from ..vehicle.examples import example
 
-    cfg = FAMILIES[args.family].sample(1).config
-    d = example(cfg.example).solver_defaults if cfg is not None else {}
+    # the family's example by name: sampling a case would compile before the checks
+    name = FAMILIES[args.family].example
+    d = example(name).solver_defaults if name is not None else {}
     relaxation = float(d.get("relaxation", 1.0)) if args.relaxation is None else args.relaxation
     anderson = int(d.get("anderson", 0)) if args.anderson is None else args.anderson
     if args.relaxation is not None and args.anderson is not None:
         source = "as given"
-    elif cfg is not None:
-        source = f"the {cfg.example} example's defaults where not given"
+    elif name is not None:
+        source = f"the {name} example's defaults where not given"
     else:
         source = "the paper's plain iteration where not given"
     return relaxation, anderson, source

@@ -81,6 +81,9 @@ class Family:
     description: str
     sampler: Callable[..., Any] = field(repr=False, compare=False)
     options: tuple[str, ...] = ()
+    example: str | None = None
+    """The vehicle example whose cases these are (its ``solver_defaults`` are a
+    sweep's defaults), known without sampling; None for generated problems."""
 
     def sample(self, n: int, seed: int = 0, start: int = 0, **options: Any) -> Any:
         """Cases ``start`` .. ``start + n - 1`` of this family under ``seed``."""
@@ -412,6 +415,7 @@ for _name, _objectives in (("cruise", "LST + YRT"), ("stability", "VSC + WSC")):
             f"points over its envelope (ENVELOPES[{_name!r}])",
             functools.partial(_vehicle_steps, _name),
             ("horizon", "formulation", "groups", "ranges", "dtype"),
+            _name,
         )
     )
 register_family(
@@ -432,6 +436,7 @@ register_family(
         "lane offsets 1.5..3.5 m drawn per case",
         _cruise_manoeuvres,
         ("dtype",),
+        "cruise",
     )
 )
 register_family(
@@ -442,5 +447,6 @@ register_family(
         "or double lane change (friction 0.6..1, 8..12 m/s), 9 s, drawn per case",
         _stability_manoeuvres,
         ("dtype",),
+        "stability",
     )
 )

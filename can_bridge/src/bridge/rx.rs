@@ -209,25 +209,27 @@ impl RxStore {
         let msg = RX_MESSAGES.get(m)?;
         let p = &self.cfg.plausibility;
         let slot = self.slots.get(m)?;
+        // The bound holds however old the reference is: a gap (the sender, the
+        // transport or this thread stalled past the state timeout) widens the
+        // allowance by rate x gap, never lifts it; reason: a loaded receiver
+        // once took a 12 -> 85 m/s jump after a 250 ms stall
+        // (test_i4_a_speed_jumping_12_85_every_frame_is_never_believed).
         if let Some((t, c0, prev)) = slot.reference {
             let elapsed = now.saturating_sub(t);
-            if elapsed <= self.cfg.state_timeout_ns {
-                let steps = match (c0, counter) {
-                    (Some(a), Some(b)) => u64::from((b + 15 - a) % 15).max(1),
-                    _ => 1,
-                };
-                let dt = elapsed.max(steps * u64::from(msg.cycle_ms) * 1_000_000);
-                if let Some((name, a, b)) = p.rate_violation(m, msg, &prev, values, dt as f64 / 1e9)
-                {
-                    return Some((
-                        true,
-                        format!(
-                            "{}: {name} {a} -> {b} in {} ms is faster than its rate limit",
-                            msg.name,
-                            dt / 1_000_000
-                        ),
-                    ));
-                }
+            let steps = match (c0, counter) {
+                (Some(a), Some(b)) => u64::from((b + 15 - a) % 15).max(1),
+                _ => 1,
+            };
+            let dt = elapsed.max(steps * u64::from(msg.cycle_ms) * 1_000_000);
+            if let Some((name, a, b)) = p.rate_violation(m, msg, &prev, values, dt as f64 / 1e9) {
+                return Some((
+                    true,
+                    format!(
+                        "{}: {name} {a} -> {b} in {} ms is faster than its rate limit",
+                        msg.name,
+                        dt / 1_000_000
+                    ),
+                ));
             }
         }
         let steer = self.fresh_reference(STEERING, now).map(|v| v[0]);
@@ -582,6 +584,34 @@ mod tests {
         assert!(!rx.state(T0 + 41 * CYCLE).valid);
         cycles(&mut rx, 42, 43);
         assert!(rx.state(T0 + 42 * CYCLE + 25 * MS).valid);
+    }
+
+    #[test]
+    fn a_jump_after_a_stall_past_the_state_timeout_is_still_implausible() {
+        // 300 ms of silence (past the 250 ms state timeout: the counter is anchored
+        // afresh), then a stream at `speed`, every other message healthy
+        let after_stall = |speed: f64| {
+            let mut rx = store();
+            cycles(&mut rx, 0, 10);
+            assert!(rx.state(T0 + 10 * CYCLE).valid);
+            let t1 = T0 + 9 * CYCLE + 300 * MS;
+            for k in 0..6u64 {
+                let (c, t) = (((10 + k) % 15) as u8, t1 + k * CYCLE);
+                rx.on_frame(&frame_of(0, &[speed, -0.5, 0.25], c), t);
+                all_but(&mut rx, Some(0), c, t);
+            }
+            let s = rx.state(t1 + 5 * CYCLE + 25 * MS);
+            (rx.rx_implausible, s.valid, s.long_speed_mps)
+        };
+        // 12.34 -> 85 m/s within 0.4 s is faster than 20 m/s^2 whatever the gap
+        // did to the counter's state: never believed
+        let (implausible, _, v) = after_stall(85.0);
+        assert!(implausible >= 1, "{implausible}");
+        assert!(v.is_none_or(|v| v < 50.0), "{v:?}");
+        // a change within rate x gap is physical after the same stall: believed
+        let (implausible, valid, v) = after_stall(16.0);
+        assert_eq!(implausible, 0);
+        assert!(valid && (v.unwrap() - 16.0).abs() < 1e-9, "{valid} {v:?}");
     }
 
     #[test]
