@@ -275,6 +275,7 @@ def test_bench_qp_peers():
     assert "smoke run: no result file written" in out, out
 
 
+@pytest.mark.slow  # the formulations against Clarabel are tests/formulations' in the default run
 @pytest.mark.timeout(120)
 def test_bench_formulations(tmp_path):
     """1 s of cruise (each formulation at its default and one grid point) and two
@@ -465,6 +466,7 @@ def test_bench_grad(tmp_path):
         ), out
 
 
+@pytest.mark.slow  # trains a network; the learned start is tests/tuning/test_warm_start.py's
 @pytest.mark.timeout(400)
 def test_bench_warm_start(tmp_path):
     path = tmp_path / "warm_start.json"

@@ -14,7 +14,7 @@ from ampc_jax.reference import solve_reference
 pytestmark = pytest.mark.timeout(120)
 
 
-@pytest.mark.parametrize("horizon", [3, 10])
+@pytest.mark.parametrize("horizon", [pytest.param(3, marks=pytest.mark.slow), 10])
 @pytest.mark.parametrize("kkt", ["woodbury", "woodbury_factored"])
 def test_woodbury_and_dense_setups_agree(horizon, kkt):
     """Woodbury setup (rho's power iteration matrix-free; K^-1 formed or kept

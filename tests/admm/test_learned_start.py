@@ -85,7 +85,8 @@ def test_untrained_loop_network_is_the_previous_step_warm_start(cases):
 
 
 @pytest.mark.timeout(240)
-@pytest.mark.parametrize("schedule", [0, 3])
+# with a schedule in the default run (it includes the plain start's path after k)
+@pytest.mark.parametrize("schedule", [pytest.param(0, marks=pytest.mark.slow), 3])
 def test_learned_start_reaches_the_formulations_own_solution(cases, schedule):
     c, inner = cases
     u_ref = reference_inputs(c.topology, c.data)  # Clarabel on the condensed QP
@@ -135,6 +136,7 @@ def _fields(m):
     return {k: getattr(m, k) for k in names}
 
 
+@pytest.mark.slow  # shapes only; the scheduled solve is checked against Clarabel above
 @pytest.mark.timeout(120)
 def test_schedule_shapes(cases):
     c, inner = cases

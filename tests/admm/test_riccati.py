@@ -66,7 +66,7 @@ def test_factor_solve_and_sweeps_match_the_condensed_form(horizon, shared):
     assert U == s.Bu.shape[-1]
 
 
-@pytest.mark.parametrize("seed", [0, 3])
+@pytest.mark.parametrize("seed", [pytest.param(0, marks=pytest.mark.slow), 3])
 def test_riccati_setup_matches_dense(seed):
     """rho* (power iteration on the pencil by sweeps), K^-1 E and the whole solve."""
     p = random_problem(seed, 3, shared="both", horizon=10)

@@ -15,7 +15,15 @@ from ampc_jax.reference import solve_reference
 pytestmark = pytest.mark.timeout(240)
 
 
-@pytest.mark.parametrize("name", sorted(FORMULATIONS))
+# Local Explicit in the default run: the gap is computed by the one core for every
+# formulation; the others under -m slow
+@pytest.mark.parametrize(
+    "name",
+    [
+        n if n == "local_explicit" else pytest.param(n, marks=pytest.mark.slow)
+        for n in sorted(FORMULATIONS)
+    ],
+)
 def test_the_gap_bounds_the_distance_to_the_optimum(name):
     """1/2 ||u - U*||_H^2 <= J(u) - J* <= gap for box-only problems (u feasible),
     the gap shrinking with the tolerance, the same under vmap."""

@@ -7,7 +7,7 @@ import pytest
 
 from ampc_jax.cli import main
 
-pytestmark = pytest.mark.timeout(240)
+pytestmark = pytest.mark.timeout(480)  # a closed loop, its shadow and replay compile
 
 SHORT = 2.0  # s simulated (40 control steps)
 
@@ -66,6 +66,7 @@ def test_cli_compare_of_a_baseline_is_refused(tmp_path, capsys):
     assert not (tmp_path / "x").exists()  # refused before anything runs or is written
 
 
+@pytest.mark.slow  # the --compare layout is tests/cli/test_cli_friction.py's in the default run
 def test_cli_compare_writes_the_baseline_and_overlays_it(tmp_path, capsys):
     """The paper's stability comparison (fig_VSC_straight_vehicle): VSC+WSC
     against the driver alone, who spins the rear wheels on mu = 0.3."""
