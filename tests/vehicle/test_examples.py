@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ampc_jax.closed_loop import SimConfig, baseline_config, config_for, simulate
+from ampc_jax.closed_loop import SimConfig, baseline_config, config_for, controller_for, simulate
 from ampc_jax.closed_loop.config import SOLVER_OPTIONS
 from ampc_jax.reference import solve_reference
 from ampc_jax.vehicle import (
@@ -226,7 +226,7 @@ def test_third_example_runs_in_closed_loop(heavy):
     cfg = config_for("test_heavy_lane_change", shadow=False)
     assert cfg.vehicle_example is heavy and cfg.settings == HeavyCruiseSettings()
     assert cfg.rho_scale == (1.0, 1.0) and cfg.anderson == 0 and cfg.horizon == 3
-    ctrl = cfg.controller()
+    ctrl = controller_for(cfg)
     assert ctrl.topology.agent_names == ("DTR", "RTV", "FDB")
     assert ctrl.topology.groups == ((0, 1, 2), (1, 2))  # RTV and FDB are shared
     res = simulate("test_heavy_lane_change", cfg)
