@@ -21,14 +21,15 @@ from .acceleration import anderson_init, anderson_step
 __all__ = ["check_iterations", "loop_parts", "run_fixed", "run_while", "still_running"]
 
 
-def check_iterations(iterations: Any, name: str = "iterations") -> int:
-    """A static iteration count: an integer >= 1, or a ValueError naming ``name``."""
+def check_iterations(iterations: Any, name: str = "iterations", low: int = 1) -> int:
+    """A static count (iterations, cases, steps): an integer >= ``low``, or a
+    ValueError naming ``name``; the one check every count of the package goes through."""
     if (
         isinstance(iterations, bool)
         or not isinstance(iterations, (int, np.integer))
-        or iterations < 1
+        or iterations < low
     ):
-        raise ValueError(f"{name}: expected an integer >= 1, got {iterations!r}")
+        raise ValueError(f"{name}: expected an integer >= {low}, got {iterations!r}")
     return int(iterations)
 
 

@@ -69,6 +69,7 @@ from ..admm.kkt import KKT, KKT_SOLVES, select_kkt
 from ..admm.layout import padded_layout
 from ..admm.params import SolverParams, as_params
 from ..admm.rho import RHO_STEPS, RhoEstimates, eq_opt_ro_exact, eq_opt_ro_power, select_rho
+from ..admm.runners import check_iterations
 from ..admm.state import ADMMState, cold_state, shift_state, warm_start
 from ..admm.stopping import select_dual_residual
 from ..problem.data import ProblemData
@@ -133,9 +134,7 @@ class LocalSetup(NamedTuple):
 
 
 def _int_at_least(name: str, value: Any, low: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-        raise ValueError(f"{name}: expected an integer >= {low}, got {value!r}")
-    return int(value)
+    return check_iterations(value, name, low)
 
 
 @dataclass(frozen=True)

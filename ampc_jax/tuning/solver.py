@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..admm.params import SolverParams
+from ..admm.runners import check_iterations
 from ..formulations import formulation
 from ..problem.data import ProblemData
 from ..problem.topology import Topology
@@ -294,9 +295,8 @@ def tune_solver(
     fam = family(family_name)
     if fam.kind != "step":
         raise ValueError(f"family: {fam.name!r} is a {fam.kind} family; expected a step family")
-    for name, v, low in (("steps", steps, 1), ("iterations", iterations, 1), ("cases", cases, 1)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
-            raise ValueError(f"{name}: expected an integer >= {low}, got {v!r}")
+    for name, v in (("steps", steps), ("iterations", iterations), ("cases", cases)):
+        check_iterations(v, name)
     if not (np.isfinite(lr) and lr > 0):
         raise ValueError(f"lr: expected a positive finite number, got {lr!r}")
     opts: dict[str, Any] = {} if horizon is None else {"horizon": int(horizon)}

@@ -49,7 +49,7 @@ from ..admm.learned_start import (
     problem_features,
 )
 from ..admm.params import SolverParams
-from ..admm.runners import loop_parts
+from ..admm.runners import check_iterations, loop_parts
 
 __all__ = [
     "START_LOSSES",
@@ -236,8 +236,7 @@ def tune_warm_start(
         ("batch", batch, 1),
         ("heldout_cases", heldout_cases, 1),
     ):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
-            raise ValueError(f"{name}: expected an integer >= {low}, got {v!r}")
+        check_iterations(v, name, low)
     if schedule > SCHEDULE_MAX:
         raise ValueError(f"schedule: expected at most {SCHEDULE_MAX} iterations, got {schedule}")
     if loss not in START_LOSSES:

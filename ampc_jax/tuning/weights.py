@@ -52,6 +52,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..admm.runners import check_iterations
 from ..closed_loop.config import LoopParams, SimConfig, baseline_config
 from ..closed_loop.loop import Simulator, run_closed_loop, simulator_for
 from ..sweep.families import LoopCases
@@ -264,9 +265,7 @@ def evaluate_settings(
 
 # ------------------------------------------------------------------ tuning
 def _check_int(name: str, v: Any) -> int:
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-        raise ValueError(f"{name}: expected an integer >= 1, got {v!r}")
-    return int(v)
+    return check_iterations(v, name)
 
 
 def _check_positive(name: str, v: Any) -> float:
