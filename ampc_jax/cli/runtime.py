@@ -151,9 +151,9 @@ def _cpu_list(text: str) -> tuple[int, ...]:
 def cmd_run(args: argparse.Namespace) -> int:
     """``ampc run``: the controller at 20 Hz next to the bridge.
 
-    Order: the flags and an artefact's file checked (exit 2, nothing started),
-    the channel opened (a missing device: exit 2 at once), the plant started,
-    the step compiled (an artefact's golden pair checked: exit 2), the loop."""
+    Order: the flags checked, an artefact read, compiled and its golden pair
+    checked (exit 2, nothing started), the channel opened (a missing device:
+    exit 2 at once), the plant started, the in-process step compiled, the loop."""
     import os
 
     if args.cpus:
@@ -190,9 +190,13 @@ def cmd_run(args: argparse.Namespace) -> int:
         )
     except ValueError as exc:
         return fail(flag_error(exc, {"lead_ms": "--lead-ms", "duration": "--duration"}))
-    art = None
+    art_fn = None
     if args.artefact:
-        # every check short of compiling, before the channel opens
+        # Rule: every check of an artefact, its compilation and golden pair
+        # included, before the channel opens; reason: a file one received must
+        # not get as far as an open bus (a forged step that resealed its digests
+        # is only seen by deserializing, compiling and running it).
+        t0 = time.perf_counter()
         try:
             art = read_artefact(
                 args.artefact,
@@ -201,16 +205,18 @@ def cmd_run(args: argparse.Namespace) -> int:
                 golden_bus=_golden_bus(SCENARIOS[args.scenario]),
                 scenario=args.scenario,
             )
+            art_fn = art.compiled()
         except ArtefactError as exc:
             return fail(f"--artefact: {exc}")
-    source = f"artefact {args.artefact}" if art is not None else "compiled in process"
+        art_s = time.perf_counter() - t0
+    source = f"artefact {args.artefact}" if art_fn is not None else "compiled in process"
 
     def prepare() -> Prepared:
         t0 = time.perf_counter()
-        # an artefact's step is compiled and checked against its golden pair; the
-        # state starts from this process's cold state, never from the file
-        fn = art.compiled() if art is not None else step.compiled()
-        print(f"controller step ready ({source}, {time.perf_counter() - t0:.1f} s)", flush=True)
+        # the state starts from this process's cold state, never from the file
+        fn = art_fn if art_fn is not None else step.compiled()
+        took = art_s if art_fn is not None else time.perf_counter() - t0
+        print(f"controller step ready ({source}, {took:.1f} s)", flush=True)
         return Prepared(fn, step.init_leaves(), step.jnp_dtype)
 
     plant_cmd = None

@@ -17,10 +17,13 @@ An artefact is one zip file:
 before anything compiles, a file that is not a readable zip of the two, a
 manifest edited after export, a step that does not hash to the manifest's, a
 calling convention this jax cannot run, a configuration, scenario,
-formulation, dtype or cold state other than the run's, and a manifest whose
+formulation, dtype or cold state other than the run's, a manifest whose
 platforms, calling convention and shapes are not those of the deserialized
-step; :meth:`Artefact.compiled` compiles the step and refuses it when it does
-not reproduce the golden pair bit for bit. Rule: nothing is actuated from an
+step, and a step whose StableHLO module does not deserialize or whose
+``@main`` takes or returns other types than its description; :meth:`Artefact.compiled`
+compiles the step and refuses it when it does not compile or does not
+reproduce the golden pair bit for bit (``ampc run`` makes every check before
+its channel opens). Rule: nothing is actuated from an
 artefact before every check passes; reason: a tampered or stale controller
 must not reach the wheels. The manifest is not signed: a forger who re-exports
 (or reseals) gets past the hashes, never past the checks against the step and
@@ -37,10 +40,16 @@ saves the compilation on the next start (docs/runtime.md, "Export").
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import math
+import os
+import re
+import sys
+import tempfile
 import zipfile
+from collections.abc import Iterator
 from os import PathLike
 from typing import Any
 
@@ -183,10 +192,120 @@ class Artefact:
             g = self.manifest["golden"]
             bus = jnp.asarray(_fromlist(g["bus"]))
             leaves = self.init_leaves()
-            fn = jax.jit(self.exported.call).lower(leaves, bus).compile()
+            with _native_errors(self.path, "does not compile") as said:
+                fn = jax.jit(self.exported.call).lower(leaves, bus).compile()
+            said.replay()
             _check_golden(fn, leaves, bus, [_fromlist(d) for d in g["outputs"]], self.path)
             self._compiled = fn
         return self._compiled
+
+
+class _Captured:
+    """What native code wrote to the process's stderr while captured."""
+
+    def __init__(self) -> None:
+        self.text = ""
+
+    def replay(self) -> None:
+        """Write it to stderr after all (what a step that passed said: warnings)."""
+        if self.text:
+            sys.stderr.write(self.text)
+            sys.stderr.flush()
+
+    def first_line(self) -> str:
+        lines = [x.strip() for x in self.text.splitlines() if x.strip()]
+        return lines[0][:200] if lines else ""
+
+
+@contextlib.contextmanager
+def _native_errors(path: Any, doing: str) -> Iterator[_Captured]:
+    """Run MLIR/XLA on the artefact's step with file descriptor 2 captured, and
+    turn any failure into one ArtefactError ``artefact PATH: step.stablehlo DOING
+    (error; first diagnostic)``. Rule: a step that does not parse or compile is
+    refused in one line; reason: MLIR's diagnostics go to the process's stderr
+    from C++ (raw MLIR, several lines), which ``ampc``'s one-error-line rule and
+    a user reading the refusal both need kept out."""
+    said = _Captured()
+    sys.stderr.flush()
+    saved = os.dup(2)
+    failure: BaseException | None = None
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield said
+        except ArtefactError:
+            raise
+        except Exception as exc:  # noqa: BLE001 -- whatever jax/MLIR/XLA raise on a bad module
+            failure = exc
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            said.text = tmp.read(1 << 16).decode("utf-8", "replace")
+    if failure is not None:
+        first = str(failure).strip().splitlines()[0][:200] if str(failure).strip() else ""
+        why = "; ".join(x for x in (first or type(failure).__name__, said.first_line()) if x)
+        raise ArtefactError(f"artefact {path}: step.stablehlo {doing} ({why})") from None
+
+
+_TENSOR = re.compile(r"tensor<[^<>]*>")
+_IR_DTYPES = {
+    "float64": "f64",
+    "float32": "f32",
+    "int64": "i64",
+    "int32": "i32",
+    "bool": "i1",
+}
+
+
+def _ir_type(aval: Any) -> str:
+    dims = "".join(f"{n}x" for n in aval.shape)
+    return f"tensor<{dims}{_IR_DTYPES.get(str(aval.dtype), str(aval.dtype))}>"
+
+
+def _main_signature(module_text: str) -> tuple[list[str], list[str]] | None:
+    """The argument and result types of the module's ``@main`` (None: no ``@main``)."""
+    m = re.search(r"func\.func public @main\((.*?)\) -> \((.*?)\) \{\n", module_text)
+    if m is None:
+        m1 = re.search(r"func\.func public @main\((.*?)\) -> (tensor<[^<>]*>)", module_text)
+        if m1 is None:
+            return None
+        m = m1
+    args = re.findall(r"%arg\d+: (tensor<[^<>]*>)", m.group(1))
+    return args, _TENSOR.findall(m.group(2))
+
+
+def _check_module(exp: Any, path: Any) -> None:
+    """The step's StableHLO module deserializes (MLIR bytecode: a flipped byte that
+    the manifest's resealed digest covers shows here, not at the compilation) and
+    its ``@main`` takes and returns what the step says it does (``in_avals``,
+    ``out_avals``): a module whose signature was changed under a kept
+    description is refused before anything compiles."""
+    with _native_errors(path, "does not deserialize as StableHLO") as said:
+        text = exp.mlir_module()
+    said.replay()
+    sig = _main_signature(text)
+    if sig is None:
+        raise ArtefactError(f"artefact {path}: step.stablehlo has no public @main function")
+    args, results = sig
+    if exp.ordered_effects or len(exp.platforms) != 1:
+        raise ArtefactError(
+            f"artefact {path}: step.stablehlo has effects or several platforms "
+            f"({list(exp.ordered_effects)}, {list(exp.platforms)}); a controller step has neither"
+        )
+    kept = [exp.in_avals[i] for i in exp.module_kept_var_idx if 0 <= i < len(exp.in_avals)]
+    want_args = [_ir_type(a) for a in kept]
+    if len(kept) != len(exp.module_kept_var_idx) or args != want_args:
+        raise ArtefactError(
+            f"artefact {path}: step.stablehlo's @main takes {args[:6]}, its description says "
+            f"{want_args[:6]}"
+        )
+    want_results = [_ir_type(a) for a in exp.out_avals]
+    if results != want_results:
+        raise ArtefactError(
+            f"artefact {path}: step.stablehlo's @main returns {results[:6]}, its description "
+            f"says {want_results[:6]}"
+        )
 
 
 def _check_golden(fn: Any, leaves: Any, bus: Any, want: list[np.ndarray], path: str) -> None:
@@ -369,6 +488,7 @@ def read_artefact(
             f"artefact {path}: step.stablehlo does not deserialize ({exc!s:.200})"
         ) from None
     # the manifest's description of the step against the step itself
+    _check_module(exp, path)
     if platforms != list(exp.platforms):
         raise ArtefactError(
             f"artefact {path}: the manifest's platforms {platforms} are not the step's "

@@ -327,3 +327,131 @@ def test_help_lists_every_option() -> None:
     flags = {(n, a.option_strings[-1]) for n, a in _options()}
     assert {("run", "--channel"), ("run", "--lead-ms"), ("plant", "--cmd-timeout-ms")} <= flags
     assert {("export", "--out"), ("replay", "--rho-scale")} <= flags
+
+
+# -- a forged step inside a resealed artefact ---------------------------------------
+
+
+def _resealed(artefact, tmp_path, blob: bytes, name: str) -> str:
+    """The artefact with ``blob`` as its step, the step's digest and the manifest's
+    recomputed (what a forger who knows the format does)."""
+    import hashlib
+
+    from ampc_jax.runtime.artefact import seal_manifest
+
+    path, _ = artefact
+    with zipfile.ZipFile(path) as z:
+        manifest = json.loads(z.read("manifest.json"))
+    manifest["step_sha256"] = hashlib.sha256(blob).hexdigest()
+    bad = tmp_path / name
+    with zipfile.ZipFile(bad, "w") as z:
+        z.writestr("step.stablehlo", blob)
+        z.writestr("manifest.json", json.dumps(seal_manifest(manifest)))
+    return str(bad)
+
+
+def _step_blob(artefact) -> bytes:
+    with zipfile.ZipFile(artefact[0]) as z:
+        return z.read("step.stablehlo")
+
+
+def _two_bytes(artefact) -> bytes:
+    b = bytearray(_step_blob(artefact))
+    b[30000] ^= 0x5A  # inside the MLIR bytecode, past the flatbuffer's header
+    b[30001] ^= 0x33
+    return bytes(b)
+
+
+def _truncated(artefact) -> bytes:
+    blob = _step_blob(artefact)
+    return blob[: len(blob) - 1000]
+
+
+def _signature(artefact, bus_size: int = 14, outputs: int = 0) -> bytes:
+    """A step whose StableHLO takes a bus of ``bus_size`` (and returns ``outputs``
+    extra entries of its first output) under the description of the real step
+    (its in_avals and out_avals kept)."""
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+    from jax import export
+
+    exp = export.deserialize(bytearray(_step_blob(artefact)))
+    n_leaves = len(exp.in_avals) - 1
+
+    def fake(leaves, bus):
+        s = sum(jnp.sum(x).astype(jnp.float64) for x in leaves) + jnp.sum(bus)
+        outs = [jnp.zeros(a.shape, a.dtype) + s.astype(a.dtype) for a in exp.out_avals]
+        if outputs:
+            outs[0] = jnp.zeros((a := exp.out_avals[0]).shape[0] + outputs, a.dtype)
+        return jax.tree.unflatten(exp.out_tree, outs)
+
+    leaves = tuple(jax.ShapeDtypeStruct(a.shape, a.dtype) for a in exp.in_avals[:n_leaves])
+    bus = jax.ShapeDtypeStruct((bus_size,), exp.in_avals[-1].dtype)
+    other = export.export(jax.jit(fake))(leaves, bus)
+    forged = dataclasses.replace(other, in_avals=exp.in_avals, out_avals=exp.out_avals)
+    return bytes(forged.serialize())
+
+
+@pytest.fixture(scope="module")
+def other_step(tmp_path_factory):
+    """The step of another controller configuration (rho scaled by 2: the same
+    shapes, other constants), exported once."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from ampc_jax.cli.runtime import _golden_bus
+    from ampc_jax.closed_loop import config_for
+    from ampc_jax.runtime.artefact import export_step
+    from ampc_jax.runtime.step import RuntimeStep
+    from ampc_jax.vehicle import SCENARIOS
+
+    path = tmp_path_factory.mktemp("other") / "other.zip"
+    step = RuntimeStep(config_for(SCENARIO, shadow=False, rho_scale=2.0))
+    export_step(step, _golden_bus(SCENARIOS[SCENARIO]), path, scenario=SCENARIO)
+    with zipfile.ZipFile(path) as z:
+        return z.read("step.stablehlo")
+
+
+FORGERIES = {
+    "two bytes": (_two_bytes, "does not deserialize as StableHLO"),
+    "truncated": (_truncated, "does not deserialize"),
+    "bus of 14": (_signature, "@main takes"),
+    "bus of 12": (lambda a: _signature(a, 12), "@main takes"),
+    "output shape": (lambda a: _signature(a, 13, outputs=1), "@main returns"),
+}
+
+
+@pytest.mark.parametrize("forgery", sorted(FORGERIES))
+def test_run_refuses_a_forged_step_before_the_channel_opens(
+    capsys, tmp_path, artefact, nothing_starts, forgery
+) -> None:
+    """A step changed inside a resealed artefact (its digests recomputed) is refused
+    with exit 2 and one ``--artefact`` line, before the bridge opens, without MLIR's
+    diagnostics on stderr."""
+    make, words = FORGERIES[forgery]
+    bad = _resealed(artefact, tmp_path, make(artefact), "forged.zip")
+    rc = main(_run(tmp_path, "--channel", "slcan-pty:", "--artefact", bad, "--quiet"))
+    captured = capsys.readouterr()
+    assert rc == 2, captured.err
+    assert captured.err.count("\n") == 1 and "loc(" not in captured.err.split(words)[0], (
+        captured.err
+    )
+    line = captured.err.strip()
+    assert line.startswith(f"ampc: error: --artefact: artefact {bad}: "), line
+    assert words in line, line
+    assert not (tmp_path / "out" / "bridge.log").exists()
+
+
+def test_run_refuses_a_step_of_another_configuration_before_the_channel_opens(
+    capsys, tmp_path, artefact, nothing_starts, other_step
+) -> None:
+    """Another configuration's step under this one's manifest (resealed): the same
+    shapes, so only its golden pair tells, and that is checked before the bridge opens."""
+    bad = _resealed(artefact, tmp_path, other_step, "other.zip")
+    rc = main(_run(tmp_path, "--channel", "slcan-pty:", "--artefact", bad, "--quiet"))
+    assert rc == 2
+    line = _error(capsys)
+    assert line.startswith(f"ampc: error: --artefact: artefact {bad}: "), line
+    assert "golden pair differs" in line, line

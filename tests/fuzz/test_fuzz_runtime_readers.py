@@ -455,3 +455,42 @@ def test_artefact_reader_refuses_hostile_manifests_never_crashes(
                     assert "golden" in str(exc), exc
         p.unlink()
     assert refused > CASES
+
+
+def test_a_resealed_step_mutation_is_refused_before_the_bridge_opens(
+    artefact, tmp_path, capsys, monkeypatch
+):
+    """Bytes of step.stablehlo mutated, its digest and the manifest's resealed: the
+    reader refuses (ArtefactError, MLIR's diagnostics kept off stderr) or the
+    deserialized step is still well formed, and then compiling it checks its golden
+    pair; `ampc run` says one line, before the bridge opens."""
+    import hashlib
+
+    path, manifest, blob, expect = artefact
+    rng = random.Random("resealed step")
+    refused = compiled = 0
+    for k in range(CASES // 2):
+        step = _mutate_bytes(blob, rng)
+        m = seal_manifest({**manifest, "step_sha256": hashlib.sha256(step).hexdigest()})
+        p = tmp_path / f"case{k}.zip"
+        with zipfile.ZipFile(p, "w") as z:
+            z.writestr("step.stablehlo", step)
+            z.writestr("manifest.json", json.dumps(m))
+        capsys.readouterr()
+        try:
+            art = read_artefact(p, **expect)
+        except ArtefactError as exc:
+            assert str(p) in str(exc), exc
+            refused += 1
+            assert "loc(" not in capsys.readouterr().err
+            if refused <= 3:
+                _run_refuses(p, tmp_path, capsys, monkeypatch)
+        else:
+            if compiled < 2:  # each compiles a program of its own
+                compiled += 1
+                try:
+                    art.compiled()
+                except ArtefactError as exc:
+                    assert str(p) in str(exc), exc
+        p.unlink()
+    assert refused > CASES // 4
