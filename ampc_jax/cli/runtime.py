@@ -407,8 +407,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
         return fail(f"replay: {exc}")
     d, lg = res["determinism"], res["log"]
     if not lg["complete"]:
+        how = {
+            False: f"it was killed (its process {lg['pid']} is gone)",
+            True: f"it is still running (process {lg['pid']})",
+            None: "killed, or still running on another machine",
+        }[lg["alive"]]
         print(
-            f"ampc: warning: {args.log} did not finish (run.json says {lg['state']!r}: killed?); "
+            f"ampc: warning: {args.log} did not finish: {how}; no final logs were written, "
             f"replayed the {lg['ticks']} ticks its {lg['source']} holds",
             file=sys.stderr,
         )

@@ -107,6 +107,11 @@ def replay_run(
     meta, cols = run.meta, run.cols
     stepped = cols["stepped"].astype(bool)
     if not stepped.any():
+        if not len(cols["tick"]) and not run.complete:
+            how = "is still running and" if run.alive else "was killed before its first tick:"
+            raise RunLogError(
+                f"{log_dir}: the run {how} its {run.source} holds no tick; nothing to replay"
+            )
         why = cols["reason"][0] if len(cols["reason"]) else "no ticks"
         raise RunLogError(
             f"{log_dir}: no tick of the run stepped the controller (the first said: {why!r:.80}); "
@@ -155,6 +160,9 @@ def replay_run(
             "source": run.source,
             "complete": run.complete,
             "state": meta["state"],
+            "alive": run.alive,
+            "pid": meta.get("pid"),
+            "settings": run.settings,
             "ticks": int(len(cols["tick"])),
             "frames_checked": run.frames_checked,
             "frames_unchecked": run.frames_unchecked,

@@ -42,12 +42,14 @@ from ..vehicle import SCENARIOS
 from ..vehicle.params import CONTROL_DT
 from .ticklog import (
     BRIDGE_LOG,
+    JOURNAL_FILE,
     MODES,
     RUN_FILE,
     SKIP_KINDS,
     TICKS_FILE,
     RunLogError,
     file_sha256,
+    read_journal_meta,
     read_run_json,
     read_ticks,
     run_digest,
@@ -70,6 +72,10 @@ class CheckedRun:
     frames_checked : ticks whose ``framed_*`` were compared with bridge.log's frame.
     frames_unchecked : ticks whose frame a killed bridge had not yet logged.
     notes : what the checks could not cover, said to the user.
+    alive : for a run that did not finish, whether its process is still running
+        on this machine (False: it was killed; None: not known, another machine).
+    settings : the file the run's settings came from (``run.json``, or the
+        journal's header for a run killed before ``run.json`` was written).
     """
 
     meta: dict[str, Any]
@@ -79,13 +85,60 @@ class CheckedRun:
     frames_checked: int
     frames_unchecked: int
     notes: tuple[str, ...]
+    alive: bool | None = None
+    settings: str = RUN_FILE
+
+
+def _settings(log_dir: Path) -> tuple[dict[str, Any], str, list[str]]:
+    """``run.json``, or for a run killed before it was written, the settings the
+    journal's header holds: (meta, the file they came from, notes). Where both
+    are there (a run that did not finish), they must agree."""
+    run_file, journal = log_dir / RUN_FILE, log_dir / JOURNAL_FILE
+    if not run_file.is_file() and journal.is_file():
+        meta = read_journal_meta(journal)
+        if meta is None:
+            raise RunLogError(
+                f"{log_dir}: no {RUN_FILE}, and its {JOURNAL_FILE} holds no run settings "
+                "(written by an earlier version)"
+            )
+        return meta, JOURNAL_FILE, [f"no {RUN_FILE}: the run's settings are its journal's"]
+    meta = read_run_json(run_file)
+    if meta["state"] == "running" and journal.is_file():
+        head = read_journal_meta(journal)
+        for key in _SETTINGS:
+            if head is not None and head.get(key) != meta.get(key):
+                raise RunLogError(
+                    f"{log_dir}: {RUN_FILE} and {JOURNAL_FILE} disagree on {key!r} "
+                    f"({meta.get(key)!r:.40}, {head.get(key)!r:.40})"
+                )
+    return meta, RUN_FILE, []
+
+
+_SETTINGS = ("scenario", "formulation", "dtype", "config_hash", "log_format", "pid")
+
+
+def _process_alive(meta: dict[str, Any]) -> bool | None:
+    """Whether the run's process is alive on this machine (None: not known)."""
+    import os
+    import socket
+
+    pid, host = meta.get("pid"), meta.get("host")
+    if not isinstance(pid, int) or host != socket.gethostname():
+        return None
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # PermissionError: a process of another user has the id
+        return True
+    return True
 
 
 def check_run(log_dir: Path) -> CheckedRun:
     """Check the run in ``log_dir`` (RunLogError, naming the first check that fails)."""
     log_dir = Path(log_dir)
-    meta = read_run_json(log_dir / RUN_FILE)
-    where = f"{log_dir}: {RUN_FILE}"
+    meta, settings, notes = _settings(log_dir)
+    where = f"{log_dir}: {settings}"
     if meta["scenario"] not in SCENARIOS:
         raise RunLogError(f"{where}: 'scenario': {meta['scenario']!r:.60} is not a scenario")
     if meta["formulation"] not in FORMULATIONS or meta["formulation"] == "none":
@@ -95,19 +148,24 @@ def check_run(log_dir: Path) -> CheckedRun:
     complete = meta["state"] != "running"
     cols, source = read_ticks(log_dir, complete)
     _check_rows(cols, f"{log_dir}: {source}")
-    _check_counts(meta, cols, complete, log_dir, source)
-    notes: list[str] = []
-    lost = meta["bridge"]["log_dropped"] + meta["bridge"]["log_errors"]
+    if "ticks" in meta:  # a run killed before run.json's first rewrite counted nothing
+        _check_counts(meta, cols, complete, log_dir, source)
+    bridge = meta.get("bridge", {})
+    lost = bridge.get("log_dropped", 0) + bridge.get("log_errors", 0)
     if lost:
         # the log's frames no longer line up with the bridge's count
         checked, unchecked = 0, int((cols["bridge_tx_frames"] > 0).sum())
         notes.append(f"the bridge's log lost {lost} frames: framed_* not cross-checked against it")
     else:
         checked, unchecked = _check_frames(log_dir, cols, complete, source)
-    if unchecked and not notes:
+    if unchecked and not lost:
         notes.append(f"{unchecked} ticks' frames were not yet in {BRIDGE_LOG} when the run ended")
-    _check_digests(log_dir, meta, complete)
-    return CheckedRun(meta, cols, source, complete, checked, unchecked, tuple(notes))
+    if settings == RUN_FILE:
+        _check_digests(log_dir, meta, complete)
+    alive = None if complete else _process_alive(meta)
+    return CheckedRun(
+        meta, cols, source, complete, checked, unchecked, tuple(notes), alive, settings
+    )
 
 
 def _first(mask: np.ndarray) -> int:

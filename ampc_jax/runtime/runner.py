@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -31,12 +32,13 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
+from ..results import Status
 from ..vehicle.actuators import ACTUATORS, bridge_kwargs
 from ..vehicle.params import CONTROL_DT
 from .faults import Fault, active_fault
 from .signals import BUS_FIELDS, bus_from_bridge
 from .step import StepReport, clamp_to_limits, command_problem
-from .ticklog import COLUMNS, TickJournal, new_row
+from .ticklog import COLUMNS, TickJournal, new_row, remove_logs
 
 __all__ = [
     "ChannelError",
@@ -197,6 +199,7 @@ def run_controller(
     ``run.json["state"]`` saying how it ended and ``["error"]`` why, if it did.
     """
     out.mkdir(parents=True, exist_ok=True)
+    remove_logs(out)  # an earlier run's logs must not pass for this one's if it is killed
     log = TickLog()
     bridge = open_bridge(channel, out, options)
     stop = {"by": None}
@@ -271,7 +274,10 @@ def run_controller(
                 time.sleep(0.005)
         # tick 0: the first bridge deadline whose wake-up (deadline - lead) is ahead
         k0 = -((d0 - time.monotonic_ns() - lead_ns) // period_ns)
-        journal = TickJournal(out, {**meta, "start_reset": start_reset})
+        journal = TickJournal(
+            out,
+            {**meta, "start_reset": start_reset, "pid": os.getpid(), "host": socket.gethostname()},
+        )
         if options.rt_priority is not None:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(options.rt_priority - 1))
         last_print = time.monotonic()
@@ -424,7 +430,7 @@ def _tick(
     if fault == "nan":
         torques = np.full(4, np.nan)
     elif fault == "fail":
-        report = report._replace(status=np.int32(4), fallback=np.bool_(True))
+        report = report._replace(status=np.int32(Status.SOLVER_ERROR), fallback=np.bool_(True))
     problem = command_problem(torques, report)
     clamped = None
     margin = set_ms = float("nan")

@@ -48,9 +48,12 @@ __all__ = [
     "TICKS_FILE",
     "RunLogError",
     "TickJournal",
+    "check_meta",
     "file_sha256",
     "new_row",
+    "read_journal_meta",
     "read_run_json",
+    "remove_logs",
     "read_ticks",
     "run_digest",
     "write_run_json",
@@ -76,6 +79,9 @@ MODES = ("active", "hold", "safe", "fault")
 # Largest files a reader takes in whole (a run of hours is well below).
 _MAX_JSON_BYTES = 16 << 20
 _MAX_JOURNAL_BYTES = 1 << 30
+
+_COUNTED = ("ticks", "sent", "misses", "skipped", "bridge")
+"""``run.json``'s counts: all or none (none only while it runs, before its first rewrite)."""
 
 _FRAMED = {
     "bridge_mode": "str",
@@ -165,6 +171,26 @@ def _json_line(obj: dict[str, Any]) -> str:
     return json.dumps(obj, separators=(",", ":")) + "\n"
 
 
+def _header(meta: dict[str, Any] | None) -> dict[str, Any]:
+    """The journal's first line: its format, its columns and the run's settings."""
+    head: dict[str, Any] = {"ampc_ticks": LOG_FORMAT, "columns": COLUMNS}
+    if meta is not None:
+        head["run"] = meta
+    return head
+
+
+def remove_logs(out: Path) -> None:
+    """Remove the logs of an earlier run in ``out`` (``ticks.parquet``, ``run.json``,
+    the journal): a run that starts there and is killed before its first tick
+    must not leave another run's logs passing for its own."""
+    for name in (TICKS_FILE, RUN_FILE, JOURNAL_FILE, RUN_FILE + ".tmp", TICKS_FILE + ".tmp"):
+        path = out / name
+        try:
+            path.unlink(missing_ok=True)
+        except OSError as exc:
+            raise OSError(exc.errno, f"cannot remove {path}: {exc.strerror}") from None
+
+
 class TickJournal:
     """The tick log while the run runs: ``ticks.jsonl`` and a running ``run.json``.
 
@@ -176,11 +202,12 @@ class TickJournal:
 
     def __init__(self, out: Path, meta: dict[str, Any]) -> None:
         self.out = out
-        for name in (TICKS_FILE, RUN_FILE, JOURNAL_FILE):
-            (out / name).unlink(missing_ok=True)
+        remove_logs(out)
         self.meta = {**meta, "log_format": LOG_FORMAT}
         self._f = open(out / JOURNAL_FILE, "w", encoding="utf-8")  # noqa: SIM115 (closed in finish)
-        self._f.write(_json_line({"ampc_ticks": LOG_FORMAT, "columns": COLUMNS}))
+        # the run's settings in the header: the journal alone is enough to replay
+        # a run killed before run.json held anything more than them
+        self._f.write(_json_line(_header(json.loads(json.dumps(self.meta, default=str)))))
         self._f.flush()
         self.status({"state": "running"})
 
@@ -252,7 +279,11 @@ def _is_hex64(x: Any) -> bool:
 
 def read_run_json(path: Path) -> dict[str, Any]:
     """``run.json``, its fields checked for presence and type (RunLogError naming
-    the first that is wrong); the digest is checked by :mod:`~.runcheck`."""
+    the first that is wrong); the digest is checked by :mod:`~.runcheck`.
+
+    A run that is still running (or was killed: ``state: "running"``) may lack
+    its counts and the bridge's statistics: ``run.json`` holds only the run's
+    settings until its first rewrite, about a second into actuation."""
     what = f"{path.parent}: {path.name}"
     if not path.is_file():
         raise RunLogError(
@@ -267,6 +298,27 @@ def read_run_json(path: Path) -> dict[str, Any]:
     meta = _loads(raw, what)
     if not isinstance(meta, dict):
         raise RunLogError(f"{what}: not a JSON object")
+    return check_meta(meta, what)
+
+
+def read_journal_meta(path: Path) -> dict[str, Any] | None:
+    """The run's settings from the journal's header (None: a header without them,
+    as a journal of an earlier version has), checked as ``run.json``'s fields are;
+    ``state`` is ``"running"``: a journal is what a run leaves while it runs."""
+    what = f"{path.parent}: {path.name}"
+    header = _journal_header(path, what)
+    meta = header.get("run")
+    if meta is None:
+        return None
+    if not isinstance(meta, dict):
+        raise RunLogError(f"{what} line 1: 'run': not a JSON object")
+    return check_meta({**meta, "state": "running"}, f"{what} line 1", digest=False)
+
+
+def check_meta(meta: dict[str, Any], what: str, *, digest: bool = True) -> dict[str, Any]:
+    """A run's settings and counts (``run.json``'s fields), checked for presence and
+    type; ``digest``: ``run.json``'s own digest must be there (a journal's header
+    has none)."""
 
     def need(key: str, ok: Any, expected: str) -> Any:
         if key not in meta:
@@ -286,25 +338,34 @@ def read_run_json(path: Path) -> dict[str, Any]:
     need("formulation", lambda x: isinstance(x, str), "a formulation's name")
     need("dtype", lambda x: x in ("float64", "float32"), "'float64' or 'float32'")
     need("config_hash", _is_hex64, "64 hex digits")
-    need("digest", _is_hex64, "64 hex digits")
-    for key in ("ticks", "sent", "misses"):
-        need(key, lambda x: _is_int(x) and x >= 0, "a count >= 0")
-    need(
-        "skipped",
-        lambda x: (
-            isinstance(x, dict)
-            and all(k in SKIP_KINDS and _is_int(v) and v >= 0 for k, v in x.items())
-        ),
-        f"counts by kind ({', '.join(SKIP_KINDS)})",
-    )
-    need(
-        "bridge",
-        lambda x: (
-            isinstance(x, dict)
-            and all(_is_int(x.get(k)) and x[k] >= 0 for k in ("log_dropped", "log_errors"))
-        ),
-        "the bridge's statistics with counts 'log_dropped' and 'log_errors'",
-    )
+    if digest:
+        need("digest", _is_hex64, "64 hex digits")
+    # a running (or killed) run's run.json holds its counts from its first
+    # rewrite on; before that, none: nothing is claimed, the journal says it all
+    counted = state != "running" or any(k in meta for k in _COUNTED)
+    if counted:
+        for key in ("ticks", "sent", "misses"):
+            need(key, lambda x: _is_int(x) and x >= 0, "a count >= 0")
+        need(
+            "skipped",
+            lambda x: (
+                isinstance(x, dict)
+                and all(k in SKIP_KINDS and _is_int(v) and v >= 0 for k, v in x.items())
+            ),
+            f"counts by kind ({', '.join(SKIP_KINDS)})",
+        )
+        need(
+            "bridge",
+            lambda x: (
+                isinstance(x, dict)
+                and all(_is_int(x.get(k)) and x[k] >= 0 for k in ("log_dropped", "log_errors"))
+            ),
+            "the bridge's statistics with counts 'log_dropped' and 'log_errors'",
+        )
+    if "pid" in meta:
+        need("pid", lambda x: _is_int(x) and x > 0, "a process id")
+    if "host" in meta:
+        need("host", lambda x: isinstance(x, str), "a host name")
     if "environment" in meta:
         need(
             "environment",
@@ -375,6 +436,29 @@ def _kind_ok(kind: str, v: Any) -> bool:
     return type(v) is str
 
 
+def _check_header(header: Any, what: str) -> dict[str, Any]:
+    plain = json.loads(json.dumps(_header(None)))
+    if (
+        not isinstance(header, dict)
+        or set(header) - {"run"} != set(plain)
+        or any(header[k] != v for k, v in plain.items())
+    ):
+        raise RunLogError(f"{what} line 1: not the header of a version {LOG_FORMAT} tick journal")
+    return header
+
+
+def _journal_header(path: Path, what: str) -> dict[str, Any]:
+    """The journal's first line (its header), read alone."""
+    try:
+        with open(path, "rb") as f:
+            line = f.readline(_MAX_JSON_BYTES)
+    except OSError as exc:
+        raise RunLogError(f"{what}: cannot be read ({exc.strerror or exc})") from None
+    if not line.endswith(b"\n"):
+        raise RunLogError(f"{what}: empty (no header)")
+    return _check_header(_loads(line, f"{what} line 1"), what)
+
+
 def _read_journal(path: Path) -> dict[str, np.ndarray]:
     """The journal's rows: a last line without its newline (cut by a kill) is left
     out; any other line that is not a row or a framed update is refused."""
@@ -388,9 +472,7 @@ def _read_journal(path: Path) -> dict[str, np.ndarray]:
     lines.pop()  # "" after the last newline, or a line the kill cut short
     if not lines:
         raise RunLogError(f"{what}: empty (no header)")
-    header = _loads(lines[0], f"{what} line 1")
-    if header != json.loads(json.dumps({"ampc_ticks": LOG_FORMAT, "columns": COLUMNS})):
-        raise RunLogError(f"{what} line 1: not the header of a version {LOG_FORMAT} tick journal")
+    _check_header(_loads(lines[0], f"{what} line 1"), what)
     rows: list[dict[str, Any]] = []
     for no, line in enumerate(lines[1:], start=2):
         at = f"{what} line {no}"

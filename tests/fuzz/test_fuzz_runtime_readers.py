@@ -149,6 +149,9 @@ def runs(tmp_path_factory) -> dict[str, Path]:
     out = {"finished": base / "finished", "killed": base / "killed"}
     _write_run(out["finished"], finish=True)
     _write_run(out["killed"], finish=False)
+    out["journal"] = base / "journal"
+    shutil.copytree(out["killed"], out["journal"])
+    (out["journal"] / "run.json").unlink()
     for d in out.values():
         check_run(d)  # the starting points are valid
     assert check_run(out["finished"]).frames_checked == 10
@@ -307,6 +310,12 @@ RUN_MUTATIONS: dict[str, tuple[str, Callable[[Path, random.Random], None]]] = {
     "journal lines": ("ticks.jsonl", _mutate_lines),
     "journal values": ("ticks.jsonl", _mutate_journal_json),
     "journal bytes": ("ticks.jsonl", lambda p, r: p.write_bytes(_mutate_bytes(p.read_bytes(), r))),
+    # a run killed before run.json was written: its settings are the journal's header's
+    "journal alone values": ("ticks.jsonl", _mutate_journal_json),
+    "journal alone bytes": (
+        "ticks.jsonl",
+        lambda p, r: p.write_bytes(_mutate_bytes(p.read_bytes(), r)),
+    ),
 }
 
 
@@ -324,7 +333,9 @@ def _replay_refuses(d: Path, out: Path, capsys) -> None:
 @pytest.mark.parametrize("family", sorted(RUN_MUTATIONS))
 def test_replay_readers_refuse_or_vouch_never_crash(runs, tmp_path, capsys, family, reseal):
     name, mutate = RUN_MUTATIONS[family]
-    start = runs["killed" if name == "ticks.jsonl" else "finished"]
+    start = runs[
+        "journal" if "alone" in family else "killed" if name == "ticks.jsonl" else "finished"
+    ]
     rng = random.Random(f"{family}/{reseal}")
     refused = 0
     for k in range(CASES):
