@@ -11,6 +11,8 @@ programs instead of compiling them (``bench/bench_compile.py`` measures both).
 ``--compilation-cache DIR`` or ``AMPC_COMPILATION_CACHE=DIR`` moves it,
 ``--no-compilation-cache`` or ``AMPC_COMPILATION_CACHE=off`` turns it off, and a
 cache JAX was already given (``JAX_COMPILATION_CACHE_DIR``) is left as it is.
+Whichever it is, a directory others can write is not used (one warning line;
+:mod:`~ampc_jax.cli.cache`): a compiled program loaded from it may run code.
 """
 
 from __future__ import annotations
@@ -60,25 +62,46 @@ def _use_compilation_cache(args: object) -> None:
     compilation). A directory that cannot be created turns the cache off with a
     warning line; a cache set through JAX's own ``JAX_COMPILATION_CACHE_DIR`` wins
     unless the flag names one."""
+    from .cache import cache_problem
+
     flag = getattr(args, "compilation_cache", None)
     if getattr(args, "no_compilation_cache", False):
         flag = "off"
-    if flag is None and os.environ.get("JAX_COMPILATION_CACHE_DIR"):
-        return
-    path = cache_dir(flag)
     import jax
 
+    jax_dir = os.environ.get("JAX_COMPILATION_CACHE_DIR")
+    if flag is None and jax_dir:
+        problem = cache_problem(jax_dir) if os.path.isdir(jax_dir) else None
+        if problem:  # JAX's own setting, checked by the same rule
+            _cache_off(f"JAX_COMPILATION_CACHE_DIR: {problem}")
+        return
+    path = cache_dir(flag)
     if path is None:
         jax.config.update("jax_enable_compilation_cache", False)
         return
     try:
-        path.mkdir(parents=True, exist_ok=True)
+        path.mkdir(parents=True, exist_ok=True, mode=0o700)
     except OSError as exc:
         print(f"ampc: warning: compilation cache off: {path}: {exc.strerror}", file=sys.stderr)
         jax.config.update("jax_enable_compilation_cache", False)
         return
+    problem = cache_problem(path)
+    if problem:
+        _cache_off(problem)
+        return
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", CACHE_MIN_COMPILE_S)
+
+
+def _cache_off(problem: str) -> None:
+    import jax
+
+    print(
+        f"ampc: warning: compilation cache off: {problem}; a compiled program loaded from "
+        "it could run code someone else put there (chmod go-w, or another directory)",
+        file=sys.stderr,
+    )
+    jax.config.update("jax_enable_compilation_cache", False)
 
 
 def build_parser() -> Parser:
