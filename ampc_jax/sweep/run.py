@@ -395,11 +395,15 @@ def run_sweep(
     for k in range(n_chunks):
         start = k * chunk
         n = min(chunk, spec.cases - start)
+        cases = fam.sample(n, spec.seed, start, **options)
         if _chunk_done(out, k):
+            # a chunk's identity is its content: its rows must hold the cases
+            # this spec draws for it, whatever its record says
+            for name in _chunk_names(k):
+                store.check_drawn(out / "chunks" / name, cases.columns, start, _tol(spec, cases))
             skipped += 1
             bar.update(n)
             continue
-        cases = fam.sample(n, spec.seed, start, **options)
         parts: list[dict[str, Any]] = []
         chunk_s.append(0.0)
         for s0 in range(0, n, sub):
@@ -442,6 +446,12 @@ def run_sweep(
         paths = [out / "chunks" / name for k in range(n_chunks) for name in _chunk_names(k)]
         tab = pa.concat_tables([store.read_chunk(p) for p in paths])
         tab = tab.sort_by([("case", "ascending"), ("point", "ascending")])
+        pairs = tab.column("case").to_numpy() * P + tab.column("point").to_numpy()
+        if not np.array_equal(pairs, np.arange(spec.cases * P)):  # the parts' union
+            raise ValueError(
+                f"out: the chunks under {out / 'chunks'} hold {pairs.size} rows, not each of "
+                f"the {spec.cases} cases x {P} points once; remove them to compute them again"
+            )
         meta.update(
             {
                 "objectives": list(topology_names),

@@ -7,7 +7,16 @@ starts only on an output directory that holds nothing of another sweep
 name, so a rerun with another grid after ``sweep.json`` was deleted, or a
 valid chunk of another sweep copied in, was joined silently under the new
 spec (``tests/sweep/test_sweep_run.py``). The check reads only
-``sweep.json`` and the Parquet footers, so refusing costs no solve.
+``sweep.json`` and the Parquet files, so refusing costs no solve.
+
+Rule: a chunk's identity is its content, not its label: the record can be
+copied onto another sweep's chunk. :func:`check_out` checks each chunk's rows
+against the spec (every case of the chunk at every rho point exactly once,
+``rho_scale`` the spec's point, ``family``, ``formulation`` and ``seed`` the
+spec's), and a resumed sweep checks a chunk it skips against the cases it
+draws for it (:func:`check_drawn`: every drawn operating point, bit for bit);
+reason: a chunk of another seed's sweep given this sweep's record was
+accepted, and ``sweep.parquet`` mixed two seeds' operating points.
 """
 
 from __future__ import annotations
@@ -18,7 +27,15 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-__all__ = ["META_KEY", "check_out", "chunk_info", "chunk_name", "read_chunk", "spec_hash"]
+__all__ = [
+    "META_KEY",
+    "check_drawn",
+    "check_out",
+    "chunk_info",
+    "chunk_name",
+    "read_chunk",
+    "spec_hash",
+]
 
 META_KEY = b"ampc_sweep"
 """The Parquet metadata key of a chunk's record: ``{"spec_hash", "chunk", "cases"}``."""
@@ -151,6 +168,109 @@ def check_out(
                 f"out: {path} has {info['rows']} rows, not {(stop - start) * points} "
                 f"({stop - start} cases x {points} points); remove it to compute it again"
             )
+        _check_rows(path, spec, start, stop, whole=processes == 1)
+
+
+_SPEC_COLUMNS = ("family", "formulation", "seed")
+
+
+def _columns(path: Path, names: list[str]) -> dict[str, Any]:
+    """Columns of a chunk as NumPy arrays (ValueError ``out:`` naming the file)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        schema = pq.read_schema(path)
+        missing = [n for n in names if n not in schema.names]
+        if missing:
+            raise ValueError(
+                f"out: {path} is not a chunk of this sweep (no column {missing[0]!r}); "
+                "remove it or choose another --out"
+            )
+        table = pq.read_table(path, columns=names)
+    except (OSError, pa.ArrowException) as exc:
+        raise ValueError(
+            f"out: {path} is not a readable sweep chunk ({_why(exc)}); remove it to compute "
+            "it again"
+        ) from None
+    return {n: table.column(n).to_numpy(zero_copy_only=False) for n in names}
+
+
+def _py(x: Any) -> Any:
+    """A NumPy scalar as the Python value it holds (for messages)."""
+    return x.item() if hasattr(x, "item") else x
+
+
+def _foreign(path: Path, what: str) -> ValueError:
+    return ValueError(
+        f"out: {path} holds rows of another sweep ({what}); remove it or choose another --out"
+    )
+
+
+def _check_rows(path: Path, spec: Mapping[str, Any], start: int, stop: int, *, whole: bool) -> None:
+    """The chunk's rows against the spec: its cases ``start .. stop - 1`` at the spec's
+    rho points (every pair exactly once where ``whole``, else each at most once),
+    and the spec's family, formulation and seed in every row."""
+    import numpy as np
+
+    rho = np.asarray(spec["rho"], np.float64)
+    c = _columns(path, ["case", "point", "rho_scale", *_SPEC_COLUMNS])
+    case, point = c["case"].astype(np.int64), c["point"].astype(np.int64)
+    if case.size and not (np.all((start <= case) & (case < stop))):
+        bad = case[(case < start) | (case >= stop)][0]
+        raise _foreign(path, f"case {_py(bad)}, this chunk is cases {start}..{stop - 1}")
+    if case.size and not np.all((0 <= point) & (point < rho.size)):
+        raise _foreign(path, f"point {_py(point[(point < 0) | (point >= rho.size)][0])}")
+    pairs = (case - start) * rho.size + point
+    if np.unique(pairs).size != pairs.size:
+        raise _foreign(path, "a (case, point) pair twice")
+    if whole and pairs.size != (stop - start) * rho.size:
+        raise _foreign(path, f"{pairs.size} of its {(stop - start) * rho.size} pairs")
+    got = np.asarray(c["rho_scale"], np.float64)
+    if not np.array_equal(got, rho[point]):
+        i = int(np.flatnonzero(got != rho[point])[0])
+        raise _foreign(
+            path,
+            f"rho_scale {_py(got[i])!r} at point {_py(point[i])}, this sweep's is "
+            f"{_py(rho[point[i]])!r}",
+        )
+    for name in _SPEC_COLUMNS:
+        want = spec[name]
+        values = c[name]
+        same = values == np.asarray(want, values.dtype) if values.size else np.ones(0, bool)
+        if not np.all(same):
+            i = int(np.flatnonzero(~same)[0])
+            raise _foreign(path, f"{name} {_py(values[i])!r}, this sweep's is {want!r}")
+
+
+def check_drawn(path: Path, drawn: Mapping[str, Any], start: int, tol: float | None = None) -> None:
+    """A chunk's drawn operating points against the cases drawn for it (``drawn``:
+    the family's columns of cases ``start ..``, ``"case"`` among them), bit for
+    bit, and its ``tol`` column against ``tol``; ValueError ``out:`` naming the
+    file and the first column that differs."""
+    import numpy as np
+
+    names = [n for n in drawn if n != "case"]
+    c = _columns(path, ["case", *names, *(["tol"] if tol is not None else [])])
+    idx = c["case"].astype(np.int64) - start
+    n = len(np.asarray(drawn["case"]))
+    if idx.size and not np.all((0 <= idx) & (idx < n)):
+        raise _foreign(path, "cases outside the chunk")
+    for name in names:
+        want = np.asarray(drawn[name])[idx]
+        got = c[name]
+        same = (
+            got == want if want.dtype.kind != "f" else (got == want) | (got != got) & (want != want)
+        )
+        if got.shape != want.shape or not np.all(same):
+            i = int(np.flatnonzero(~same)[0]) if got.shape == want.shape else 0
+            raise _foreign(
+                path,
+                f"case {_py(c['case'][i])}: {name} {_py(got[i])!r}, this sweep draws "
+                f"{_py(want[i])!r}",
+            )
+    if tol is not None and not np.all(c["tol"] == tol):
+        raise _foreign(path, f"tol {_py(c['tol'][0])!r}, this sweep's is {tol!r}")
 
 
 def _range(cases: Any) -> str:

@@ -163,6 +163,71 @@ def test_a_sweep_never_joins_rows_of_another_spec(tmp_path, capsys, monkeypatch)
     assert len(bar.postfix) == 4 and all("waste" in p for p in bar.postfix)
 
 
+def _relabel(src, dst):
+    """``src``'s rows under ``dst``'s record (its Parquet metadata: spec hash, chunk
+    number, cases), written in ``dst``'s place: a chunk whose label was copied."""
+    from ampc_jax.sweep.store import META_KEY
+
+    label = pq.read_metadata(dst).metadata[META_KEY]
+    table = pq.read_table(src).replace_schema_metadata({META_KEY: label})
+    pq.write_table(table, dst)
+
+
+def _edit_column(path, name, value):
+    """A column of a chunk set to ``value`` in every row, its record kept."""
+    import pyarrow as pa
+
+    table = pq.read_table(path)
+    col = pa.array([value] * table.num_rows, table.schema.field(name).type)
+    table = table.set_column(table.schema.get_field_index(name), name, col)
+    pq.write_table(table, path)
+
+
+def test_a_chunk_is_known_by_its_content_not_its_label(tmp_path, capsys):
+    """A chunk of another sweep under this sweep's record (its Parquet metadata
+    copied) was joined: another seed's chunk gave "0 chunk(s) run, 2 skipped" and
+    a table of two seeds' operating points. Its rows are checked against the spec
+    (cases, points, rho, family, formulation, seed) and its drawn operating points
+    against the cases this spec draws: another seed, other rho points, another
+    family, another case count are refused naming the file; the chunk restored,
+    the sweep resumes."""
+    a, b, c, d = (tmp_path / x for x in "abcd")
+    assert main(["sweep", *SMALL, "--rho", "0.5,2", "--out", str(a)]) == 0
+    assert main(["sweep", *SMALL, "--rho", "0.5,2", "--seed", "1", "--out", str(b)]) == 0
+    assert main(["sweep", *SMALL, "--rho", "0.5,3", "--out", str(c)]) == 0
+    assert main(["sweep", *SMALL[:3], "6", *SMALL[4:], "--rho", "0.5,2", "--out", str(d)]) == 0
+    capsys.readouterr()
+    first = _table(a)
+    mine = a / "chunks" / "chunk_00001.parquet"
+    keep = tmp_path / "keep.parquet"
+    shutil.copy(mine, keep)
+
+    def refused(words):
+        code = main(["sweep", *SMALL, "--rho", "0.5,2", "--out", str(a)])
+        err = capsys.readouterr().err
+        assert code == 2, err
+        assert err.startswith("ampc: error: --out: ") and str(mine) in err, err
+        assert len(err.strip().splitlines()) == 1 and words in err, err
+        shutil.copy(keep, mine)
+
+    _relabel(b / "chunks" / "chunk_00001.parquet", mine)  # the reported case
+    refused("seed 1, this sweep's is 0")
+    _relabel(c / "chunks" / "chunk_00001.parquet", mine)
+    refused("rho_scale 3.0 at point 1, this sweep's is 2.0")
+    _relabel(d / "chunks" / "chunk_00001.parquet", mine)  # cases 4..5 of 6
+    refused("has 4 rows, not 8")
+    _edit_column(mine, "family", "stability_step")
+    refused("family 'stability_step'")
+    # a forger who also writes this sweep's seed into the rows: the operating
+    # points are still another seed's
+    _relabel(b / "chunks" / "chunk_00001.parquet", mine)
+    _edit_column(mine, "seed", 0)
+    refused("this sweep draws")
+    assert main(["sweep", *SMALL, "--rho", "0.5,2", "--out", str(a)]) == 0
+    assert "0 chunk(s) run, 2 skipped" in capsys.readouterr().out
+    _same_rows(first, _table(a), exact=True)
+
+
 def test_memory_is_estimated_before_a_sweep_starts(tmp_path, capsys, monkeypatch):
     """Issue 29, 12: 10^7 rho points ran into XLA's RESOURCE_EXHAUSTED (184 GB)
     and --chunk 10**9 padded every chunk to 10^9 cases. The grid, a call, a
