@@ -59,6 +59,7 @@ import jaxlib
 import numpy as np
 from jax import export
 
+from .files import named
 from .step import RuntimeStep
 
 __all__ = [
@@ -162,7 +163,7 @@ def export_step(
             },
         }
     )
-    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as z:
+    with named(path), zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as z:
         z.writestr("step.stablehlo", blob)
         z.writestr("manifest.json", json.dumps(manifest, indent=1))
     return manifest

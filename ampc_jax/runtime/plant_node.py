@@ -49,6 +49,7 @@ from ..vehicle.manoeuvres import scenario as scenario_spec
 from ..vehicle.params import CONTROL_DT, VehicleParams
 from ..vehicle.plant import plant_step
 from .faults import Fault, active_fault
+from .files import named
 from .signals import MESSAGES, bus_vector, message_values
 
 __all__ = ["PLANT_TICK_S", "PlantNode", "PlantReport", "write_report"]
@@ -94,6 +95,25 @@ class _Receiver(threading.Thread):
                 out.append(self.frames.get_nowait())
             except queue.Empty:
                 return out
+
+
+class _CandumpLog:
+    """The plant's candump log (python-can's writer); an I/O error names the file."""
+
+    def __init__(self, path: Path) -> None:
+        import can
+
+        self.path = path
+        with named(path, "create"):
+            self._w = can.CanutilsLogWriter(path, channel="plant")
+
+    def on_message_received(self, msg: Any) -> None:
+        with named(self.path, "write"):
+            self._w.on_message_received(msg)
+
+    def stop(self) -> None:
+        with named(self.path, "write"):
+            self._w.stop()
 
 
 def _db() -> Any:
@@ -239,7 +259,7 @@ class PlantNode:
             bitrate=500000,
         )
         parent = os.getppid()
-        logger = can.CanutilsLogWriter(self.log_path, channel="plant") if self.log_path else None
+        logger = _CandumpLog(self.log_path) if self.log_path else None
         counters = dict.fromkeys(self.data_ids, 0)
         last_frames: dict[str, bytes] = {}
         prev_counter: int | None = None
@@ -412,7 +432,9 @@ class PlantNode:
 
     def _summary(self, rep: PlantReport, late: list[float], timeouts: int, started: bool):
         # the period of the steady stream: frames of a running command (active or
-        # hold), not the start-up latch or the stop sequence
+        # hold), not the start-up latch or the stop sequence, each stamped on
+        # arrival by the receive thread (the receiving side's period, which
+        # `ampc run --with-plant` reports beside its own)
         t = np.array([f["t_plant"] for f in rep.frames if f["mode"] in ("active", "hold")])
         periods = np.diff(t) * 1e3 if t.size > 1 else np.zeros(0)
         q = lambda a, p: float(np.percentile(a, p)) if a.size else None  # noqa: E731
@@ -427,6 +449,7 @@ class PlantNode:
             "period_ms_median": q(periods, 50),
             "period_ms_p01": q(periods, 1),
             "period_ms_p99": q(periods, 99),
+            "period_dev_ms_p50": q(dev, 50),
             "period_dev_ms_p99": q(dev, 99),
             "period_dev_ms_max": float(dev.max()) if dev.size else None,
             "timeout_ticks": timeouts,
@@ -441,11 +464,14 @@ def write_report(rep: PlantReport, out: Path) -> None:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    out.mkdir(parents=True, exist_ok=True)
+    with named(out, "create the directory"):
+        out.mkdir(parents=True, exist_ok=True)
     for name, rows in (("plant", rep.rows), ("frames", rep.frames)):
         if rows:
             cols = {k: [r[k] for r in rows] for k in rows[0]}
         else:
             cols = {"t": []}
-        pq.write_table(pa.table(cols), out / f"{name}.parquet")
-    (out / "plant.json").write_text(json.dumps(rep.summary, indent=1))
+        with named(out / f"{name}.parquet"):
+            pq.write_table(pa.table(cols), out / f"{name}.parquet")
+    with named(out / "plant.json"):
+        (out / "plant.json").write_text(json.dumps(rep.summary, indent=1))

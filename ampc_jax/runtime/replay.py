@@ -34,6 +34,7 @@ import numpy as np
 
 from ..closed_loop import config_for
 from ..closed_loop.controller import controller_for
+from .files import named
 from .runcheck import check_run
 from .runner import environment
 from .signals import BUS_FIELDS, bus_measurement
@@ -234,7 +235,10 @@ def replay_run(
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    out.mkdir(parents=True, exist_ok=True)
-    pq.write_table(pa.table(rows), out / "replay.parquet")
-    (out / "replay.json").write_text(json.dumps(result, indent=1))
+    with named(out, "create the directory"):
+        out.mkdir(parents=True, exist_ok=True)
+    with named(out / "replay.parquet"):
+        pq.write_table(pa.table(rows), out / "replay.parquet")
+    with named(out / "replay.json"):
+        (out / "replay.json").write_text(json.dumps(result, indent=1))
     return result

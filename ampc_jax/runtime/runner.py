@@ -36,16 +36,19 @@ from ..results import Status
 from ..vehicle.actuators import ACTUATORS, bridge_kwargs
 from ..vehicle.params import CONTROL_DT
 from .faults import Fault, active_fault
+from .files import named
 from .signals import BUS_FIELDS, bus_from_bridge
 from .step import StepReport, clamp_to_limits, command_problem
 from .ticklog import COLUMNS, TickJournal, new_row, remove_logs
 
 __all__ = [
+    "RT_PRIORITY",
     "ChannelError",
     "Prepared",
     "RunOptions",
     "TickLog",
     "environment",
+    "fifo_refusal",
     "open_bridge",
     "run_controller",
 ]
@@ -64,9 +67,10 @@ class RunOptions:
     max_state_age_ms : older state counts as stale (100).
     start_timeout_s : longest wait for the first valid state (60).
     faults : injected controller faults (``nan``, ``fail``).
-    rt_priority : None (default), or a SCHED_FIFO priority 2..99 for the
-        bridge's transmit thread, with one less for the runtime's loop (needs
-        root or CAP_SYS_NICE; the step then runs in the loop's thread).
+    rt_priority : None (normal scheduling), or a SCHED_FIFO priority 2..99 for
+        the bridge's transmit thread, with one less for the runtime's loop (needs
+        root or CAP_SYS_NICE; the step then runs in the loop's thread; ``ampc
+        run`` asks for :data:`RT_PRIORITY` where the system allows it).
     """
 
     duration: float = 16.0
@@ -121,6 +125,29 @@ def environment() -> dict[str, Any]:
         "jaxlib": jaxlib.__version__,
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
     }
+
+
+RT_PRIORITY = 50
+"""``ampc run``'s default SCHED_FIFO priority for the bridge's transmit thread (the
+loop runs at one less). Rule: ask for real-time scheduling by default; reason:
+under load the period error seen by an independent receiver is almost all the
+transmit thread waking late (p99 3.4 to 5.4 ms on a busy machine, 10 to 28 ms
+with two extra busy loops), and with SCHED_FIFO 50 the bridge's own part is
+0.04 ms at p99 (can_bridge/README.md; docs/runtime.md, "Timing")."""
+
+
+def fifo_refusal(priority: int) -> str | None:
+    """Why this process may not run a thread under SCHED_FIFO at ``priority``
+    (None: it may). Tried on the calling thread and undone at once."""
+    if not hasattr(os, "SCHED_FIFO"):
+        return "SCHED_FIFO does not exist on this system"
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except OSError as exc:
+        return f"{exc.strerror or exc}; needs root, CAP_SYS_NICE or an RLIMIT_RTPRIO of {priority}"
+    os.sched_setscheduler(0, policy, param)
+    return None
 
 
 def _first_deadline(bridge: Any, timeout: float = 2.0) -> int:
@@ -182,6 +209,7 @@ def run_controller(
     *,
     meta: dict[str, Any],
     plant_cmd: list[str] | None = None,
+    plant_out: Path | None = None,
     progress: Any = None,
 ) -> TickLog:
     """Run the controller next to a bridge on ``channel``; write the logs to ``out``.
@@ -189,7 +217,9 @@ def run_controller(
     The channel is opened first (ChannelError: a missing device is refused
     before anything compiles), then ``plant_cmd`` started (``ampc run
     --with-plant``: ``{pty}`` is replaced by the bridge's pseudo-terminal; it
-    compiles its plant meanwhile), then ``prepare()`` compiles the step
+    compiles its plant meanwhile; ``plant_out``: where it writes ``plant.json``,
+    whose receive period goes to ``run.json["receive_period"]``), then
+    ``prepare()`` compiles the step
     (:class:`Prepared`; ``f(leaves, bus) -> (torques, leaves, report)``, calls
     never trace). ``progress(text)`` gets a status line about once a second.
 
@@ -198,7 +228,8 @@ def run_controller(
     an error, the plant's exit), ``ticks.parquet`` and ``run.json`` are written,
     ``run.json["state"]`` saying how it ended and ``["error"]`` why, if it did.
     """
-    out.mkdir(parents=True, exist_ok=True)
+    with named(out, "create the directory"):
+        out.mkdir(parents=True, exist_ok=True)
     remove_logs(out)  # an earlier run's logs must not pass for this one's if it is killed
     log = TickLog()
     bridge = open_bridge(channel, out, options)
@@ -361,12 +392,44 @@ def run_controller(
                 "pid": os.getpid(),
                 "environment": environment(),
             }
+            if plant_out is not None:
+                final["receive_period"] = receive_period(plant_out / "plant.json")
             if error:
                 final["error"] = error
             if stop["by"]:
                 final["stopped_by"] = stop["by"]
-            log.summary = journal.finish(log.rows, final)
+            in_flight = sys.exc_info()[1]
+            try:
+                log.summary = journal.finish(log.rows, final)
+            except OSError:
+                # the final logs could not be written (a full disk): the journal
+                # stays, replayable as a killed run's; the error that ended the
+                # run, if one did, is the one reported
+                if in_flight is None:
+                    raise
     return log
+
+
+def receive_period(plant_json: Path) -> dict[str, Any] | None:
+    """The period of the torque frames as the receiving side saw them (``ampc
+    plant``'s receive thread, python-can, stamped on arrival): frames, median
+    period and |period - 50 ms| at p50, p99 and max (ms); None without a report."""
+    import json
+
+    try:
+        rep = json.loads(plant_json.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(rep, dict):
+        return None
+    keys = {
+        "frames": "frames",
+        "period_ms_median": "period_ms_median",
+        "error_ms_p50": "period_dev_ms_p50",
+        "error_ms_p99": "period_dev_ms_p99",
+        "error_ms_max": "period_dev_ms_max",
+    }
+    return {k: rep.get(v) for k, v in keys.items()}
 
 
 def _counts(rows: list[dict[str, Any]], compute: list[float]) -> dict[str, Any]:

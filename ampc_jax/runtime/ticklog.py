@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from ..vehicle.params import CONTROL_DT
+from .files import named
 from .signals import BUS_FIELDS
 
 __all__ = [
@@ -140,7 +141,7 @@ def new_row(tick: int, woke_ns: int, why: str = "", skip: str = "") -> dict[str,
 
 def file_sha256(path: Path) -> str:
     h = hashlib.sha256()
-    with open(path, "rb") as f:
+    with named(path, "read"), open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
@@ -162,8 +163,10 @@ def write_run_json(path: Path, meta: dict[str, Any]) -> dict[str, Any]:
     plain.pop("digest", None)
     plain["digest"] = run_digest(plain)
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(plain, indent=1))
-    os.replace(tmp, path)
+    with named(tmp, "write"):
+        tmp.write_text(json.dumps(plain, indent=1))
+    with named(path, "replace"):
+        os.replace(tmp, path)
     return plain
 
 
@@ -184,11 +187,8 @@ def remove_logs(out: Path) -> None:
     the journal): a run that starts there and is killed before its first tick
     must not leave another run's logs passing for its own."""
     for name in (TICKS_FILE, RUN_FILE, JOURNAL_FILE, RUN_FILE + ".tmp", TICKS_FILE + ".tmp"):
-        path = out / name
-        try:
-            path.unlink(missing_ok=True)
-        except OSError as exc:
-            raise OSError(exc.errno, f"cannot remove {path}: {exc.strerror}") from None
+        with named(out / name, "remove"):
+            (out / name).unlink(missing_ok=True)
 
 
 class TickJournal:
@@ -204,26 +204,31 @@ class TickJournal:
         self.out = out
         remove_logs(out)
         self.meta = {**meta, "log_format": LOG_FORMAT}
-        self._f = open(out / JOURNAL_FILE, "w", encoding="utf-8")  # noqa: SIM115 (closed in finish)
+        self.path = out / JOURNAL_FILE
+        with named(self.path, "create"):
+            self._f = open(self.path, "w", encoding="utf-8")  # noqa: SIM115 (closed in finish)
         # the run's settings in the header: the journal alone is enough to replay
         # a run killed before run.json held anything more than them
-        self._f.write(_json_line(_header(json.loads(json.dumps(self.meta, default=str)))))
-        self._f.flush()
+        self._write(_json_line(_header(json.loads(json.dumps(self.meta, default=str)))))
         self.status({"state": "running"})
+
+    def _write(self, line: str) -> None:
+        with named(self.path, "write"):
+            self._f.write(line)
+            self._f.flush()
 
     def append(self, row: dict[str, Any]) -> None:
         """A tick's row (the keys of :data:`COLUMNS`)."""
-        self._f.write(_json_line({k: row[k] for k in COLUMNS}))
-        self._f.flush()
+        self._write(_json_line({k: row[k] for k in COLUMNS}))
 
     def framed(self, row: dict[str, Any]) -> None:
         """What the bridge framed for the row's tick (its ``framed_*`` columns), read later."""
-        self._f.write(_json_line({"framed": row["tick"], **{k: row[k] for k in _FRAMED}}))
-        self._f.flush()
+        self._write(_json_line({"framed": row["tick"], **{k: row[k] for k in _FRAMED}}))
 
     def close(self) -> None:
         """Close the journal as it is (what a killed run leaves behind)."""
-        self._f.close()
+        with named(self.path, "close"):
+            self._f.close()
 
     def status(self, summary: dict[str, Any]) -> None:
         """``run.json`` with the counts so far (``state: "running"``)."""
@@ -236,14 +241,17 @@ class TickJournal:
 
         ticks = self.out / TICKS_FILE
         tmp = ticks.with_name(TICKS_FILE + ".tmp")
-        pq.write_table(_table(rows), tmp)
-        os.replace(tmp, ticks)
+        with named(tmp, "write"):
+            pq.write_table(_table(rows), tmp)
+        with named(ticks, "replace"):
+            os.replace(tmp, ticks)
         files = {TICKS_FILE: file_sha256(ticks)}
         if (self.out / BRIDGE_LOG).is_file():
             files[BRIDGE_LOG] = file_sha256(self.out / BRIDGE_LOG)
         written = write_run_json(self.out / RUN_FILE, {**self.meta, **summary, "files": files})
-        self._f.close()
-        (self.out / JOURNAL_FILE).unlink(missing_ok=True)
+        self.close()
+        with named(self.path, "remove"):
+            self.path.unlink(missing_ok=True)
         return written
 
 

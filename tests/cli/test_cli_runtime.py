@@ -455,3 +455,88 @@ def test_run_refuses_a_step_of_another_configuration_before_the_channel_opens(
     line = _error(capsys)
     assert line.startswith(f"ampc: error: --artefact: artefact {bad}: "), line
     assert "golden pair differs" in line, line
+
+
+# -- real-time scheduling by default ------------------------------------------------
+
+
+@pytest.fixture
+def options_seen(monkeypatch):
+    """The RunOptions `ampc run` passes to the loop (which then stops the run)."""
+    import ampc_jax.runtime.runner as runner
+
+    seen = []
+
+    def record(prepare, channel, out, options, **kwargs):
+        seen.append((options, kwargs["meta"]))
+        raise RuntimeError("stopped by the test")
+
+    monkeypatch.setattr(runner, "run_controller", record)
+    return seen
+
+
+def _refused(monkeypatch) -> list[int]:
+    import ampc_jax.runtime.runner as runner
+
+    asked = []
+
+    def refuse(priority):
+        asked.append(priority)
+        return "Operation not permitted; needs root"
+
+    monkeypatch.setattr(runner, "fifo_refusal", refuse)
+    return asked
+
+
+def test_run_asks_for_real_time_scheduling_by_default(
+    capsys, tmp_path, options_seen, monkeypatch
+) -> None:
+    import ampc_jax.runtime.runner as runner
+
+    monkeypatch.setattr(runner, "fifo_refusal", lambda priority: None)  # allowed
+    assert main(_run(tmp_path, "--channel", "slcan-pty:", "--quiet")) == 1
+    options, meta = options_seen[-1]
+    assert options.rt_priority == runner.RT_PRIORITY == 50
+    assert meta["scheduling"] == {"rt_priority": 50, "refused": False}
+    assert "ampc: warning" not in capsys.readouterr().err
+
+
+def test_a_refused_default_says_so_in_one_line_and_runs(
+    capsys, tmp_path, options_seen, monkeypatch
+) -> None:
+    asked = _refused(monkeypatch)
+    assert main(_run(tmp_path, "--channel", "slcan-pty:", "--quiet")) == 1  # the fake loop's
+    assert asked == [50]
+    options, meta = options_seen[-1]
+    assert options.rt_priority is None and meta["scheduling"]["refused"] is True
+    err = capsys.readouterr().err
+    warnings = [x for x in err.splitlines() if x.startswith("ampc: warning: ")]
+    assert len(warnings) == 1, err
+    assert "real-time scheduling refused" in warnings[0] and "p99" in warnings[0]
+    assert "--rt-priority 0" in warnings[0]
+
+
+def test_an_explicit_priority_refused_is_an_error(
+    capsys, tmp_path, nothing_starts, monkeypatch
+) -> None:
+    _refused(monkeypatch)
+    assert main(_run(tmp_path, "--channel", "slcan-pty:", "--rt-priority", "40")) == 2
+    line = _error(capsys)
+    assert line.startswith("ampc: error: --rt-priority 40: SCHED_FIFO refused"), line
+
+
+def test_rt_priority_0_is_normal_scheduling(capsys, tmp_path, options_seen, monkeypatch) -> None:
+    asked = _refused(monkeypatch)
+    assert main(_run(tmp_path, "--channel", "slcan-pty:", "--rt-priority", "0", "--quiet")) == 1
+    assert asked == []  # not even asked
+    options, _ = options_seen[-1]
+    assert options.rt_priority is None
+    assert "ampc: warning" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("value", ["1", "100", "-1", "x"])
+def test_rt_priority_out_of_range(capsys, tmp_path, nothing_starts, value) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(_run(tmp_path, "--channel", "slcan-pty:", "--rt-priority", value))
+    assert exc.value.code == 2
+    assert "--rt-priority" in _error(capsys)

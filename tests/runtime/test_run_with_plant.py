@@ -86,9 +86,22 @@ def test_ten_seconds_over_the_bus_every_frame_checked(run_result) -> None:
     (last,) = [line for line in proc.stdout.splitlines() if line.startswith("ran ")]
     assert re.fullmatch(
         r"ran 200 ticks: sent \d+, misses \d+, skipped .*; compute median \d+\.\d\d ms, "
-        r"p99 \d+\.\d\d ms; bridge \w+",
+        r"p99 \d+\.\d\d ms; bridge \w+, (SCHED_FIFO \d+|normal scheduling), tick lateness "
+        r"p99 \d+\.\d\d ms; received period \d+\.\d\d ms, \|error\| p50 \d+\.\d\d ms, "
+        r"p99 \d+\.\d\d ms \(\d+ frames at the plant\)",
         last,
     ), last
+    # the receiving side's period in run.json: the plant's arrival stamps of the
+    # steady stream (active and hold frames), |period - 50 ms| at p50 and p99
+    rx = run["receive_period"]
+    t_rx = np.array([t for t, m in zip(frames["t_plant"], frames["mode"], strict=True)
+                     if m in ("active", "hold")])  # fmt: skip
+    err = np.abs(np.diff(t_rx) * 1e3 - 50.0)
+    assert rx["frames"] == len(frames["mode"])
+    assert rx["error_ms_p50"] == pytest.approx(np.percentile(err, 50), rel=1e-12)
+    assert rx["error_ms_p99"] == pytest.approx(np.percentile(err, 99), rel=1e-12)
+    assert rx["period_ms_median"] == pytest.approx(np.median(np.diff(t_rx) * 1e3), rel=1e-12)
+    assert run["scheduling"]["rt_priority"] in (None, 30, 50)
 
 
 @pytest.mark.timeout(300)
