@@ -6,7 +6,8 @@ controller at 20 Hz next to the CAN bridge (``--with-plant`` also starts
 line); ``ampc plant`` is the simulated vehicle on the other end of the bus;
 ``ampc export`` writes the controller step as a ``jax.export`` artefact that
 ``ampc run --artefact`` checks and runs; ``ampc replay`` re-runs a logged run
-offline, bit for bit, and with other settings (docs/runtime.md).
+offline, bit for bit, and with other settings, or (``--candump``) a drive's
+candump log (docs/runtime.md).
 """
 
 from __future__ import annotations
@@ -429,10 +430,18 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    """``ampc replay``: a logged run re-run offline, and with other settings."""
+    """``ampc replay``: a logged run re-run offline, and with other settings; or
+    (``--candump``) a drive's candump log through the controller."""
     _x64()
     from ..runtime.replay import replay_run
 
+    if args.candump is not None:
+        return _replay_candump(args)
+    if args.log is None:
+        return fail("replay: expected a run's output directory, or --candump FILE")
+    if args.scenario is not None or args.lead_ms is not None:
+        flag = "--scenario" if args.scenario is not None else "--lead-ms"
+        return fail(f"{flag}: only with --candump (a run directory's run.json names it)")
     problem = output_dir(args.out)
     if problem:
         return fail(problem)
@@ -492,6 +501,67 @@ def cmd_replay(args: argparse.Namespace) -> int:
         )
     print(f"wrote {Path(args.out) / 'replay.json'}, {Path(args.out) / 'replay.parquet'}")
     return 0 if d["differ"] == 0 else 1
+
+
+def _replay_candump(args: argparse.Namespace) -> int:
+    """``ampc replay --candump FILE --scenario NAME``."""
+    from ..runtime.candump import CandumpError, replay_candump
+    from ..vehicle import SCENARIOS
+
+    if args.log is not None:
+        return fail(f"--candump: replays a candump log, not also the run directory {args.log!r}")
+    if args.scenario is None:
+        return fail("--scenario: required with --candump (the controller to replay)")
+    if args.scenario not in SCENARIOS:
+        return fail(
+            f"--scenario: unknown scenario {args.scenario!r}; expected one of {sorted(SCENARIOS)}"
+        )
+    if args.rho_scale or args.float32 or len(args.formulation or ()) > 1:
+        return fail(
+            "--candump: replays one controller (one --formulation at most; no --rho-scale "
+            "or --float32)"
+        )
+    lead = 25.0 if args.lead_ms is None else float(args.lead_ms)
+    if not 0.0 < lead < 45.0:
+        return fail(f"--lead-ms: expected a lead time in (0, 45) ms, got {args.lead_ms!r}")
+    problem = output_dir(args.out)
+    if problem:
+        return fail(problem)
+    out = Path(args.out)
+    try:
+        res = replay_candump(
+            Path(args.candump),
+            args.scenario,
+            out,
+            formulation=(args.formulation or [None])[0],
+            lead_ms=lead,
+            progress=lambda line: print(line, flush=True),
+        )
+    except CandumpError as exc:
+        return fail(f"replay: {exc}")
+    except OSError as exc:
+        return fail(f"replay: {exc}", 1)
+    by = ", ".join(f"{k} {v}" for k, v in sorted(res["frames_by_message"].items()))
+    refused = sum(res["frames_refused"].values())
+    print(
+        f"read {args.candump}: {res['frames']} frames ({by}; {refused} refused, "
+        f"{res['frames_other']} of other messages)"
+    )
+    skipped = ", ".join(f"{k} {v}" for k, v in sorted(res["skipped"].items())) or "none"
+    print(
+        f"replayed {res['ticks']} ticks on {res['ticks_on']} (lead {lead:g} ms): "
+        f"stepped {res['stepped']}, skipped {skipped}"
+    )
+    if res["compared"]:
+        print(
+            f"compared {res['compared']} active frames: {res['identical']} identical bit for "
+            f"bit, {res['differ']} differ (max |dT| {res['max_abs_diff_nm']:g} Nm)"
+        )
+    else:
+        print("the log holds no active torque frame to compare with")
+    print(f"wrote {out / 'candump_replay.json'}, {out / 'candump_replay.parquet'}, "
+          f"{out / 'candump_replay.png'}")  # fmt: skip
+    return 0
 
 
 def add_runtime_commands(sub: Any) -> None:
@@ -650,7 +720,33 @@ def add_runtime_commands(sub: Any) -> None:
         "determinism check (every command reproduced bit for bit), then the same states "
         "with other rho scales (one vmapped batch), formulations or float32.",
     )
-    p.add_argument("log", help="the run's output directory (with ticks.parquet and run.json)")
+    p.add_argument(
+        "log",
+        nargs="?",
+        default=None,
+        help="the run's output directory (with ticks.parquet and run.json) (default: none, "
+        "with --candump)",
+    )
+    p.add_argument(
+        "--candump",
+        metavar="FILE",
+        default=None,
+        help="replay a drive's candump log (candump -l) instead: its state frames through "
+        "the controller at their timestamps, its torque frames compared with what the "
+        "controller would have framed (needs --scenario) (default: none)",
+    )
+    p.add_argument(
+        "--scenario",
+        default=None,
+        help="with --candump: the scenario the controller is set up for (default: none)",
+    )
+    p.add_argument(
+        "--lead-ms",
+        type=arg_type(positive_finite),
+        default=None,
+        help="with --candump: the state is read this long before each torque frame, as "
+        "`ampc run --lead-ms` did (default: 25)",
+    )
     p.add_argument(
         "--rho-scale",
         default=None,
@@ -662,7 +758,8 @@ def add_runtime_commands(sub: Any) -> None:
         "--formulation",
         action="append",
         choices=forms,
-        help="also replay with this formulation, repeatable (default: none)",
+        help="also replay with this formulation, repeatable; with --candump, the "
+        "controller's formulation (default: none; with --candump the scenario's)",
     )
     p.add_argument("--float32", action="store_true", help="also replay in float32 (default: off)")
     p.add_argument("--out", default="replay", help="output directory (default: replay)")

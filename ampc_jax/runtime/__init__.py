@@ -11,6 +11,9 @@
 * :mod:`~.plant_node` -- ``ampc plant``, the simulated vehicle on the bus
   (python-can, cantools, autosar-e2e);
 * :mod:`~.replay` -- ``ampc replay``, bit for bit and what-if;
+* :mod:`~.candump` -- ``ampc replay --candump``: a drive's candump log through
+  the controller, compared with the commands it framed;
+* :mod:`~.files` -- I/O errors that name their file;
 * :mod:`~.faults` -- injected faults for the safety chain's tests.
 
 The bus-side modules import ``can_bridge``, ``can``, ``cantools`` and ``e2e``
