@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import json
 import os
-import resource
-import signal
 import subprocess
 import sys
 import textwrap
@@ -23,25 +21,23 @@ pytestmark = pytest.mark.timeout(300)
 LIMIT = 4096  # bytes: a header and run.json fit, a few dozen ticks do not
 
 
-def _limited(limit: int = LIMIT):
-    def set_limit() -> None:
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # EFBIG instead of a kill
-        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
-
-    return set_limit
-
-
 def _python(script: str, limit: int = LIMIT) -> subprocess.CompletedProcess:
+    """``script`` in a fresh Python whose files may not grow past ``limit`` bytes
+    (set first thing in the child: no preexec_fn in a process that runs JAX)."""
+    head = (
+        "import resource, signal\n"
+        "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # EFBIG instead of a kill\n"
+        f"resource.setrlimit(resource.RLIMIT_FSIZE, ({limit}, {limit}))\n"
+    )
     env = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_ENABLE_X64": "1"}
     env.pop("JAX_COMPILATION_CACHE_DIR", None)  # nothing to compile, nothing to cache
     return subprocess.run(
-        [sys.executable, "-c", textwrap.dedent(script)],
+        [sys.executable, "-c", head + textwrap.dedent(script)],
         capture_output=True,
         text=True,
         timeout=200,
         env=env,
         cwd=ROOT,
-        preexec_fn=_limited(limit),
     )
 
 
