@@ -189,7 +189,7 @@ impl LogWriter {
 pub fn start(setup: &LogSetup, counters: Arc<LogCounters>) -> Result<(LogSender, LogWriter)> {
     use std::os::unix::fs::{FileTypeExt, OpenOptionsExt};
     let path = setup.path.as_path();
-    let shown = crate::error::clip(&path.display().to_string());
+    let shown = show_path(path);
     let meta = std::fs::symlink_metadata(path).ok();
     if meta.as_ref().is_some_and(|m| m.file_type().is_symlink()) {
         return Err(Error::Config(format!(
@@ -262,6 +262,20 @@ pub fn start(setup: &LogSetup, counters: Arc<LogCounters>) -> Result<(LogSender,
         LogWriter { handle },
     ))
 }
+
+/// A path as every message about the log shows it: whole (a path is at most
+/// `PATH_MAX`, 4096 bytes), quoted; anything longer is cut like other input.
+fn show_path(path: &std::path::Path) -> String {
+    let text = path.display().to_string();
+    if text.len() <= 4096 {
+        format!("{text:?}")
+    } else {
+        crate::error::clip(&text)
+    }
+}
+
+/// Pending lines are written at the latest this long after the last write.
+const FLUSH_EVERY: Duration = Duration::from_millis(200);
 
 /// Buffered lines are written once this many bytes are pending.
 const FLUSH_AT: usize = 8192;
@@ -355,18 +369,22 @@ impl Out {
 
 fn writer_loop(rx: Receiver<Entry>, mut out: Out, channel: &str) {
     let mut line = String::with_capacity(64);
+    let mut flushed = std::time::Instant::now();
     loop {
-        match rx.recv_timeout(Duration::from_millis(200)) {
+        match rx.recv_timeout(FLUSH_EVERY) {
             Ok(e) => {
                 line.clear();
                 format_line(&mut line, e.wall_ns, channel, &e.frame, e.dir);
                 out.push(line.as_bytes());
-                if out.buf.len() >= FLUSH_AT {
+                // a slow, steady trickle is written too, not held for 8 KB
+                if out.buf.len() >= FLUSH_AT || flushed.elapsed() >= FLUSH_EVERY {
                     out.flush();
+                    flushed = std::time::Instant::now();
                 }
             }
             Err(RecvTimeoutError::Timeout) => {
                 out.flush();
+                flushed = std::time::Instant::now();
             }
             Err(RecvTimeoutError::Disconnected) => break,
         }
