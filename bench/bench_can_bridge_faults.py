@@ -30,12 +30,24 @@ Targets: 0 stale, 0 intruder samples believed. The cases:
 * bad CRC 1 in 8 (item 13);
 * issue 21's: pty, serial adapter and socketcand stalls (frames found within
   20 ms of resuming, frames dropped for age), frozen / stepping / doubled /
-  mostly-bad-CRC sensors, socketcand restart, a ``V`` flood, watchdog times.
+  mostly-bad-CRC sensors, socketcand restart, a ``V`` flood, watchdog times;
+* the transmit gaps (``--only tx``; docs/bus-safety.md, "Out"): a raw SLCAN
+  host stopped inside a torque frame (after byte 1, 9, 20 and 21: the last is
+  the stated residual) and between frames for 150-300 ms, python-can's own
+  reader stopped inside a frame, with the command held at RL = 1500 Nm and
+  the vehicle's actuators (``stale``: E2E-valid frames older than a period;
+  ``steps``: frames after a gap of the actuator's timeout that are not a
+  ramp from zero; ``cut``: lines ended so that their CRC fails);
+  socketcand stalls right after the probe, at random, an echo-less server
+  and a slow one, each with and without ``socketcand_active``
+  (``stale with torque``: stale frames carrying a torque); a 2 s flood of
+  unknown frames on the pty with a log (lines, bytes, suppressed).
 
 Run::
 
     python bench/bench_can_bridge_faults.py            # about 2 min
     python bench/bench_can_bridge_faults.py --stall 5 --trials 10 --json out.json
+    python bench/bench_can_bridge_faults.py --only tx --short --stall 1 --trials 3
 """
 
 from __future__ import annotations
