@@ -28,6 +28,9 @@ import can_bridge
 pytestmark = pytest.mark.timeout(60)
 
 PERIOD = 0.05
+# a frame of the last period, with room for a loaded machine's scheduling
+# (the stalls below are 0.3 s and longer: a stale frame is at least that old)
+FRESH = 4 * PERIOD
 
 
 class Commander:
@@ -106,7 +109,7 @@ def test_tx_socketcand_stall_after_the_probe_reads_no_stale_active_frame(
     assert frames
     assert all(f["mode"] in ("safe", "fault") for f in frames), {f["mode"] for f in frames}
     assert all(f["torques"] == (0.0,) * 4 for f in frames)
-    stale = [(f, a) for f, a in aged if a > PERIOD and f["torques"] != (0.0,) * 4]
+    stale = [(f, a) for f, a in aged if a > FRESH and f["torques"] != (0.0,) * 4]
     assert not stale, stale
     assert running["safety_state"] == "safe_only"
     assert running["tx_safe_only"] > 0
@@ -146,7 +149,7 @@ def test_tx_socketcand_active_a_slow_server_gets_no_stale_frame(tmp_path: Path) 
         tmp_path, SocketcandBus(slow=0.03), lambda *_: None, socketcand_active=True
     )
     assert any(f["mode"] == "active" for f in frames)
-    assert aged and max(a for _, a in aged) < 2 * PERIOD, sorted(a for _, a in aged)[-3:]
+    assert aged and max(a for _, a in aged) < FRESH, sorted(a for _, a in aged)[-3:]
     assert running["safety_state"] in ("active", "lost")
 
 
@@ -159,7 +162,7 @@ def test_tx_socketcand_active_residual_is_one_frame_then_a_ramp(tmp_path: Path) 
     frames, aged, _, _ = _run(
         tmp_path, SocketcandBus(), _stall_after_probe(0.5), socketcand_active=True
     )
-    stale = [i for i, (_, a) in enumerate(aged) if a > 2 * PERIOD]
+    stale = [i for i, (_, a) in enumerate(aged) if a > FRESH]
     assert len(stale) <= 1, [aged[i] for i in stale]
     if stale:
         nxt = [f for f, _ in aged[stale[0] + 1 :] if f["mode"] == "active"]

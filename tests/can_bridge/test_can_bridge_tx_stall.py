@@ -30,7 +30,9 @@ pytestmark = pytest.mark.timeout(60)
 
 PERIOD = ACTUATORS.period_ms / 1e3
 RISE_NM = 500.0  # 10,000 Nm/s over a 50 ms tick
-FRESH = 2 * PERIOD  # a frame of the last period, with room for a loaded machine
+# a frame of the last period, with room for a loaded machine's scheduling
+# (the stalls below are 0.5 s and longer: a stale frame is at least that old)
+FRESH = 4 * PERIOD
 DID = data_id("WheelTorqueCmd")
 
 
@@ -112,7 +114,7 @@ class RawReader:
             except BlockingIOError:
                 continue
             self._add(time.time(), b)
-            if self.buf.startswith(b"t101") and len(self.buf) >= k or (k == 1 and self.buf == b"t"):
+            if self.buf.startswith(b"t101"[: min(k, 4)]) and len(self.buf) >= k:
                 return
         raise AssertionError("no torque line to stop in")
 
@@ -129,8 +131,8 @@ def _frames(lines: list[tuple[float, bytes]]) -> list[tuple[float, bytes, bool]]
 
 @pytest.mark.parametrize(
     ("k", "stall"),
-    [(1, 1.0), (9, 0.3), (20, 1.0)]
-    + [pytest.param(k, s, marks=pytest.mark.slow) for k in (2, 5, 14, 19) for s in (0.12, 0.6)],
+    [(1, 1.0), (9, 0.5), (20, 1.0)]
+    + [pytest.param(k, s, marks=pytest.mark.slow) for k in (2, 5, 14, 19) for s in (0.5, 2.0)],
 )
 def test_tx_stall_mid_frame_a_raw_reader_gets_no_stale_frame(tmp_path: Path, k, stall) -> None:
     """A raw SLCAN host reads ``k`` bytes of a torque line and stops for
@@ -197,7 +199,7 @@ def test_tx_stall_before_the_last_cr_is_the_stated_residual(tmp_path: Path) -> N
     assert abs(_rl(rest[0][1])) <= RISE_NM
 
 
-@pytest.mark.parametrize(("k", "stall"), [(3, 1.0), (12, 0.25)])
+@pytest.mark.parametrize(("k", "stall"), [(3, 1.0), (12, 0.5)])
 def test_tx_stall_mid_frame_python_can_reader_gets_no_stale_frame(tmp_path: Path, k, stall) -> None:
     """python-can's slcan reader (one byte per read) stops after ``k`` bytes
     of a torque line, as a busy process does: it parses the line's end
