@@ -45,7 +45,7 @@ Targets: 0 stale, 0 intruder samples believed. The cases:
 
 Run::
 
-    python bench/bench_can_bridge_faults.py            # about 2 min
+    python bench/bench_can_bridge_faults.py            # about 5 min
     python bench/bench_can_bridge_faults.py --stall 5 --trials 10 --json out.json
     python bench/bench_can_bridge_faults.py --only tx --short --stall 1 --trials 3
 """
