@@ -30,12 +30,24 @@ Targets: 0 stale, 0 intruder samples believed. The cases:
 * bad CRC 1 in 8 (item 13);
 * issue 21's: pty, serial adapter and socketcand stalls (frames found within
   20 ms of resuming, frames dropped for age), frozen / stepping / doubled /
-  mostly-bad-CRC sensors, socketcand restart, a ``V`` flood, watchdog times.
+  mostly-bad-CRC sensors, socketcand restart, a ``V`` flood, watchdog times;
+* the transmit gaps (``--only tx``; docs/bus-safety.md, "Out"): a raw SLCAN
+  host stopped inside a torque frame (after byte 1, 9, 20 and 21: the last is
+  the stated residual) and between frames for 150-300 ms, python-can's own
+  reader stopped inside a frame, with the command held at RL = 1500 Nm and
+  the vehicle's actuators (``stale``: E2E-valid frames older than a period;
+  ``steps``: frames after a gap of the actuator's timeout that are not a
+  ramp from zero; ``cut``: lines ended so that their CRC fails);
+  socketcand stalls right after the probe, at random, an echo-less server
+  and a slow one, each with and without ``socketcand_active``
+  (``stale with torque``: stale frames carrying a torque); a 2 s flood of
+  unknown frames on the pty with a log (lines, bytes, suppressed).
 
 Run::
 
-    python bench/bench_can_bridge_faults.py            # about 2 min
+    python bench/bench_can_bridge_faults.py            # about 5 min
     python bench/bench_can_bridge_faults.py --stall 5 --trials 10 --json out.json
+    python bench/bench_can_bridge_faults.py --only tx --short --stall 1 --trials 3
 """
 
 from __future__ import annotations
@@ -135,17 +147,40 @@ def _stale(seen: list, log: str, period_s: float) -> dict:
 # ---------------------------------------------------------------- issue 29
 
 
-def socketcand_stall(stall: float, trials: int, phase: str, period_ms: float = 50.0) -> dict:
+def socketcand_stall(
+    stall: float,
+    trials: int,
+    phase: str,
+    period_ms: float = 50.0,
+    server: dict | None = None,
+    **bridge_kw,
+) -> dict:
     """The server stops reading for ``stall`` s, ``trials`` times: right after
-    answering a frame's echo (``between``) or at a random moment (``random``)."""
+    answering a frame's echo (``between``), right after answering the probe
+    ahead of a deadline (``probe``) or at a random moment (``random``).
+    ``server``: SocketcandBus's options (``echo=False``: no echo answered);
+    ``bridge_kw``: the bridge's (``socketcand_active``). ``stale``: frames
+    older than a period on the bus; ``stale_torque``: of which carrying a
+    torque; ``valid``: frames E2E-valid (all of them)."""
     rng = random.Random(29)
-    totals = {"framed": 0, "stale": 0, "oldest_s": 0.0, "seen": 0, "trials": trials}
+    totals = {
+        "framed": 0,
+        "stale": 0,
+        "stale_torque": 0,
+        "oldest_s": 0.0,
+        "seen": 0,
+        "trials": trials,
+        "states": set(),
+    }
     with tempfile.TemporaryDirectory() as d:
         for k in range(trials):
-            srv = SocketcandBus()
+            srv = SocketcandBus(**(server or {}))
             log = os.path.join(d, f"s{k}.log")
             b = can_bridge.Bridge(
-                f"socketcand:127.0.0.1:{srv.port}/can0", period_ms=period_ms, log_path=log
+                f"socketcand:127.0.0.1:{srv.port}/can0",
+                period_ms=period_ms,
+                log_path=log,
+                **bridge_kw,
             )
             peer = Peer(
                 can.Bus(interface="socketcand", host="127.0.0.1", port=srv.port, channel="can0")
@@ -153,8 +188,11 @@ def socketcand_stall(stall: float, trials: int, phase: str, period_ms: float = 5
             b.start()
             cmd = Commander(b, lambda seq: (0.0, 0.0, 2.0 * (seq % 700), 0.0))
             time.sleep(0.5 + rng.random() * period_ms / 1e3)
-            if phase == "between":
-                srv.stall_after(1)
+            if phase in ("between", "probe"):
+                if phase == "between":
+                    srv.stall_after(1)
+                else:
+                    srv.stall_after_probe()
                 end = time.monotonic() + 5
                 while srv.reading.is_set() and time.monotonic() < end:
                     time.sleep(0.002)
@@ -170,10 +208,17 @@ def socketcand_stall(stall: float, trials: int, phase: str, period_ms: float = 5
             peer.close()
             srv.close()
             r = _stale(peer.seen, log, period_ms / 1e3)
+            totals["states"].add(f"{s['transport_state']}/{s['safety_state']}")
+            written = candump_tx(log)
+            for (t, data), age in zip(peer.seen, frame_ages(peer.seen, written), strict=False):
+                del t
+                if age > period_ms / 1e3 and data[2:] != bytes(6):
+                    totals["stale_torque"] += 1
             totals["framed"] += s["tx_frames"]
             totals["stale"] += r["stale"]
             totals["seen"] += r["seen"]
             totals["oldest_s"] = max(totals["oldest_s"], r["oldest_s"])
+    totals["states"] = sorted(totals["states"])
     return totals
 
 
@@ -348,6 +393,276 @@ def bad_crc_1_in_8() -> dict:
         "valid_pct": round(100.0 * sum(samples) / len(samples), 1),
         "rx_crc_errors": s["rx_crc_errors"],
     }
+
+
+# ------------------------------------------------- transmit gaps (pty, log)
+
+RISE_NM = 500.0  # the vehicle's rise rate, 10,000 Nm/s, over a 50 ms tick
+DID = 3073  # WheelTorqueCmd's E2EDataID
+
+
+def _valid(data: bytes) -> bool:
+    import e2e.p01
+
+    return len(data) == 8 and e2e.p01.e2e_p01_check(bytearray(data), DID)
+
+
+def _rl(data: bytes) -> float:
+    raw = (int.from_bytes(data, "little") >> 40) & 0xFFF
+    return 2.0 * (raw - 4096 if raw >= 2048 else raw)
+
+
+def _lines(fd: int, seconds: float, out: list, buf: list) -> None:
+    """Read the pty in bulk for ``seconds``; each line stamped on arrival."""
+    import select
+
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        if select.select([fd], [], [], 0.005)[0]:
+            try:
+                chunk = os.read(fd, 65536)
+            except BlockingIOError:
+                continue
+            buf[0] += chunk
+            while b"\r" in buf[0]:
+                line, buf[0] = buf[0].split(b"\r", 1)
+                out.append((time.time(), line))
+
+
+def _torque_lines(lines: list) -> list[tuple[float, bytes]]:
+    return [
+        (t, bytes.fromhex(x[5:21].decode()))
+        for t, x in lines
+        if x.startswith(b"t1018") and len(x) == 21
+    ]
+
+
+def pty_stall(stall: float, k: int | None) -> dict:
+    """A raw SLCAN host stops reading for ``stall`` s: after ``k`` bytes of a
+    torque frame (``k`` None: between two lines). The command is held at
+    RL = 1500 Nm with the vehicle's actuators. ``stale``: valid frames older
+    than a period; ``steps``: valid frames after a gap of at least the
+    actuator's timeout that are not a ramp from zero; ``cut``: frames that
+    fail their CRC (the line the host stopped in)."""
+    import select
+
+    from ampc_jax.vehicle.actuators import ACTUATORS, bridge_kwargs
+
+    with tempfile.TemporaryDirectory() as d:
+        log = os.path.join(d, "b.log")
+        b = can_bridge.Bridge("slcan-pty:", **bridge_kwargs(), log_path=log)
+        b.start()
+        cmd = Commander(b, lambda seq: (-2.0 * (seq % 500), 0.0, 1500.0, 1500.0))
+        fd = open_raw_host(b.pty_path)
+        lines: list = []
+        buf = [b""]
+        _lines(fd, 0.6, lines, buf)
+        if k is not None:
+            end = time.monotonic() + 5
+            while time.monotonic() < end:
+                if select.select([fd], [], [], 0.05)[0]:
+                    try:
+                        buf[0] += os.read(fd, 1)
+                    except BlockingIOError:
+                        continue
+                    if buf[0].endswith(b"\r"):
+                        lines.append((time.time(), buf[0][:-1]))
+                        buf[0] = b""
+                    elif buf[0].startswith(b"t101") and len(buf[0]) >= k:
+                        break
+        time.sleep(stall)
+        _lines(fd, 0.4, lines, buf)
+        cmd.close()
+        s = b.stats()
+        b.stop()
+        os.close(fd)
+        frames = _torque_lines(lines)
+        valid = [(t, x) for t, x in frames if _valid(x)]
+        ages = frame_ages(valid, candump_tx(log))
+    steps = 0
+    for (t0, _), (t1, x) in zip(valid, valid[1:], strict=False):
+        if t1 - t0 >= ACTUATORS.timeout_ms / 1e3 and abs(_rl(x)) > RISE_NM:
+            steps += 1
+    return {
+        "framed": s["tx_frames"],
+        "stale": sum(a > 0.05 for a in ages),
+        "oldest_s": round(max(ages, default=0.0), 4),
+        "steps": steps,
+        "cut": len(frames) - len(valid),
+        "ramp_restarts": s["ramp_restarts"],
+    }
+
+
+def pty_stalls(stalls: list[float], offsets: list[int | None]) -> dict:
+    out = {}
+    for k in offsets:
+        tot = {"framed": 0, "stale": 0, "oldest_s": 0.0, "steps": 0, "cut": 0, "trials": 0}
+        for st in stalls:
+            r = pty_stall(st, k)
+            for key in ("framed", "stale", "steps", "cut"):
+                tot[key] += r[key]
+            tot["oldest_s"] = max(tot["oldest_s"], r["oldest_s"])
+            tot["trials"] += 1
+        out["between lines" if k is None else f"after byte {k}"] = tot
+    return out
+
+
+def python_can_stall(stall: float, offsets: list[int]) -> dict:
+    """python-can's own slcan reader (one byte a read) stops after ``k``
+    bytes of a torque frame for ``stall`` s, once per offset."""
+    from ampc_jax.vehicle.actuators import bridge_kwargs
+
+    tot = {"framed": 0, "stale": 0, "oldest_s": 0.0, "cut": 0, "trials": 0, "reader_errors": 0}
+    with tempfile.TemporaryDirectory() as d:
+        for i, k in enumerate(offsets):
+            log = os.path.join(d, f"p{i}.log")
+            b = can_bridge.Bridge("slcan-pty:", **bridge_kwargs(), log_path=log)
+            b.start()
+            cmd = Commander(b, lambda seq: (-2.0 * (seq % 500), 0.0, 1500.0, 1500.0))
+            bus = _bus(b.pty_path)
+            orig = bus.serialPortOrig.read
+            st = {"line": b"", "armed": False, "at": 0.0}
+
+            def read(n: int = 1, st=st, orig=orig, k=k) -> bytes:
+                got = orig(n)
+                for c in got:
+                    st["line"] = b"" if c == 13 else st["line"] + bytes([c])
+                if st["armed"] and st["line"].startswith(b"t") and len(st["line"]) == k:
+                    st["armed"] = False
+                    st["at"] = time.time()
+                    time.sleep(stall)
+                return got
+
+            bus.serialPortOrig.read = read
+            seen = []
+            end = time.monotonic() + 0.6
+            try:
+                while time.monotonic() < end:
+                    bus.recv(0.05)
+                st["armed"] = True
+                end = time.monotonic() + stall + 0.6
+                while time.monotonic() < end:
+                    m = bus.recv(0.05)
+                    if m is not None and m.arbitration_id == 0x101:
+                        seen.append((time.time(), bytes(m.data)))
+            except can.CanError:
+                tot["reader_errors"] += 1
+            cmd.close()
+            s = b.stats()
+            bus.shutdown()
+            b.stop()
+            valid = [(t, x) for t, x in seen if _valid(x)]
+            ages = frame_ages(valid, candump_tx(log))
+            tot["framed"] += s["tx_frames"]
+            tot["stale"] += sum(a > 0.05 for a in ages)
+            tot["oldest_s"] = max(tot["oldest_s"], round(max(ages, default=0.0), 4))
+            tot["cut"] += len(seen) - len(valid)
+            tot["trials"] += 1
+    return tot
+
+
+def log_flood(seconds: float) -> dict:
+    """Unknown-ID frames on the pty as fast as it takes them for ``seconds``
+    s, with a log: frames sent, lines and bytes the log took, counters."""
+    with tempfile.TemporaryDirectory() as d:
+        log = os.path.join(d, "flood.log")
+        b = can_bridge.Bridge("slcan-pty:", period_ms=50, log_path=log)
+        b.start()
+        fd = open_raw_host(b.pty_path)
+        read_all(fd, 0.2)
+        sent = 0
+        chunk = b"t7FF0\r" * 512
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            try:
+                sent += os.write(fd, chunk) // 6
+            except BlockingIOError:
+                read_all(fd, 0.001)
+        time.sleep(0.3)
+        s = b.stats()
+        b.stop()
+        os.close(fd)
+        size = os.path.getsize(log)
+        with open(log) as f:
+            lines = sum(1 for _ in f)
+    return {
+        "sent": sent,
+        "rx_unknown_id": s["rx_unknown_id"],
+        "log_lines": lines,
+        "log_bytes": size,
+        "log_mb_per_s": round(size / 1e6 / seconds, 3),
+        "log_suppressed": s["log_suppressed"],
+        "log_dropped": s["log_dropped"],
+    }
+
+
+def tx_gaps(args) -> dict:
+    """The transmit side's gaps: every case with its figures."""
+    stalls = [args.stall] if args.short else [0.3, args.stall]
+    return {
+        "pty_mid_frame": pty_stalls(stalls, [1, 9, 20, 21]),
+        "pty_between_lines": pty_stalls(
+            [0.15, 0.21, 0.24] if args.short else [0.15, 0.19, 0.21, 0.22, 0.24, 0.26, 0.3], [None]
+        ),
+        "python_can_mid_frame": python_can_stall(min(args.stall, 1.0), [1, 5, 12, 20]),
+        "socketcand_probe_default": socketcand_stall(args.stall, args.trials, "probe"),
+        "socketcand_probe_active": socketcand_stall(
+            args.stall, args.trials, "probe", socketcand_active=True
+        ),
+        "socketcand_random_active": socketcand_stall(
+            args.stall, args.trials, "random", socketcand_active=True
+        ),
+        "socketcand_no_echo": socketcand_stall(
+            args.stall, args.trials, "random", server={"echo": False}
+        ),
+        "socketcand_no_echo_active": socketcand_stall(
+            args.stall, args.trials, "random", server={"echo": False}, socketcand_active=True
+        ),
+        "socketcand_slow_active": socketcand_stall(
+            0.0, args.trials, "random", server={"slow": 0.03}, socketcand_active=True
+        ),
+        "log_flood": log_flood(2.0),
+    }
+
+
+def print_tx_gaps(r: dict) -> None:
+    print("transmit gaps, per fault (target: 0 stale, 0 steps):")
+    head = f"{'fault':<36} {'framed':>6} {'stale':>5} {'valid %':>7}   detail"
+    print(head)
+    print("-" * len(head))
+    for group in ("pty_mid_frame", "pty_between_lines"):
+        for name, x in r[group].items():
+            print(
+                f"{'pty, raw host stops ' + name:<36} {x['framed']:>6} {x['stale']:>5} "
+                f"{'-':>7}   ({x['trials']} stalls, oldest valid {x['oldest_s']:.3f} s, "
+                f"steps after a timeout {x['steps']}, cut lines {x['cut']})"
+            )
+    x = r["python_can_mid_frame"]
+    print(
+        f"{'pty, python-can stops inside a frame':<36} {x['framed']:>6} {x['stale']:>5} {'-':>7}"
+        f"   ({x['trials']} stalls, oldest valid {x['oldest_s']:.3f} s, cut {x['cut']}, "
+        f"reader errors {x['reader_errors']})"
+    )
+    for key, name in (
+        ("socketcand_probe_default", "socketcand, stall after probe"),
+        ("socketcand_probe_active", "  the same, socketcand_active"),
+        ("socketcand_random_active", "socketcand, random stall, active"),
+        ("socketcand_no_echo", "socketcand, no echo"),
+        ("socketcand_no_echo_active", "  the same, socketcand_active"),
+        ("socketcand_slow_active", "socketcand, slow server, active"),
+    ):
+        x = r[key]
+        print(
+            f"{name:<36} {x['framed']:>6} {x['stale']:>5} {'-':>7}   ({x['trials']} runs; "
+            f"stale with torque {x['stale_torque']}, oldest {x['oldest_s']:.3f} s; "
+            f"{', '.join(x['states'])})"
+        )
+    x = r["log_flood"]
+    print(
+        f"{'pty, 2 s flood of unknown frames':<36} {'-':>6} {'-':>5} {'-':>7}   "
+        f"({x['sent']} sent, log {x['log_lines']} lines, {x['log_bytes']} B, "
+        f"{x['log_mb_per_s']} MB/s; suppressed {x['log_suppressed']}, dropped {x['log_dropped']})"
+    )
 
 
 # ---------------------------------------------------------------- issue 21
@@ -554,6 +869,15 @@ def main() -> None:
     ap.add_argument("--trials", type=int, default=5, help="socketcand stalls per phase")
     ap.add_argument("--watchdog-trials", type=int, default=3)
     ap.add_argument(
+        "--only",
+        choices=("all", "tx"),
+        default="all",
+        help="tx: only the transmit gaps (pty stalls inside a frame and of 150-300 ms, "
+        "socketcand stalls after the probe, echo-less and slow servers, a log flood); "
+        "default all",
+    )
+    ap.add_argument("--short", action="store_true", help="fewer stall lengths in the transmit gaps")
+    ap.add_argument(
         "--json",
         default=str(_meta.RESULTS / "bench_can_bridge_faults.json"),
         help="the result file, with its metadata "
@@ -561,6 +885,12 @@ def main() -> None:
     )
     args = ap.parse_args()
     meta = _meta.metadata()
+    if args.only == "tx":
+        res = {"tx_gaps": tx_gaps(args)}
+        print_tx_gaps(res["tx_gaps"])
+        meta["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]
+        Path(args.json).write_text(json.dumps({"meta": meta, "results": res}, indent=2))
+        return
     res: dict = {
         "socketcand_stall_between_ticks": socketcand_stall(args.stall, args.trials, "between"),
         "socketcand_stall_random_phase": socketcand_stall(args.stall, args.trials, "random"),
@@ -596,6 +926,9 @@ def main() -> None:
             )
     r = res["bad_crc_1_in_8"]
     print(f"{'bad CRC 1 in 8':<30} {'-':>6} {'-':>5} {r['valid_pct']:>7.1f}")
+    res["tx_gaps"] = tx_gaps(args)
+    print()
+    print_tx_gaps(res["tx_gaps"])
     res.update(
         {
             "stall_pty": stall_pty(args.stall),

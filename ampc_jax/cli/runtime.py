@@ -396,7 +396,8 @@ def _plant_node(args: argparse.Namespace, faults: tuple[Any, ...], out: Path) ->
         args.channel,
         args.scenario,
         args.duration,
-        cmd_timeout_ms=args.cmd_timeout_ms,
+        # None: the actuator contract's timeout (ampc_jax.vehicle.actuators)
+        **({} if args.cmd_timeout_ms is None else {"cmd_timeout_ms": args.cmd_timeout_ms}),
         faults=faults,
         log_path=out / "plant_bus.log",
         repeat=args.repeat,
@@ -678,8 +679,9 @@ def add_runtime_commands(sub: Any) -> None:
     p.add_argument(
         "--cmd-timeout-ms",
         type=arg_type(positive_finite),
-        default=200.0,
-        help="silence after which the plant applies zero torque (default: 200)",
+        default=None,
+        help="silence after which the plant applies zero torque (default: the actuator "
+        "contract's 200, which the bridge's vehicle.toml shares as actuator_timeout_ms)",
     )
     p.add_argument(
         "--fault",

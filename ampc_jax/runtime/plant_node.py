@@ -142,7 +142,9 @@ class PlantNode:
         ``slcan:PATH``).
     scenario : a registered scenario's name.
     duration : manoeuvre time to run (s; default the scenario's).
-    cmd_timeout_ms : silence after which the plant applies zero torque (default 200).
+    cmd_timeout_ms : silence after which the plant applies zero torque (default
+        ``ACTUATORS.timeout_ms``, 200: the actuator contract the bridge's ramp
+        restart is derived from).
     start_timeout_s : longest wait for the first active frame (default 60).
     faults : injected sensor faults (:class:`~ampc_jax.runtime.faults.Fault`).
     log_path : the candump log of the bus as the plant sees it (None: no log).
@@ -156,7 +158,7 @@ class PlantNode:
         scenario: str,
         duration: float | None = None,
         *,
-        cmd_timeout_ms: float = 200.0,
+        cmd_timeout_ms: float = ACTUATORS.timeout_ms,
         start_timeout_s: float = 60.0,
         faults: tuple[Fault, ...] = (),
         log_path: Path | None = None,

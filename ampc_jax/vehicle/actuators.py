@@ -14,7 +14,11 @@ clamps without saying). What derives from :data:`ACTUATORS`:
   (:func:`wheel_geometry`) and the floor under its rate-of-change limits
   (:func:`signal_rate_bounds`: the fastest each received signal can change
   for this vehicle, which the shipped limits must not undercut);
-* the DBC's torque signals, whose range must hold every limit (2 Nm steps).
+* the DBC's torque signals, whose range must hold every limit (2 Nm steps);
+* the actuators' command timeout (:attr:`ActuatorLimits.timeout_ms`: 0 Nm
+  after that long without a valid frame), which the simulated vehicle
+  (``ampc plant``) applies and from which the bridge derives when a gap in
+  transmission restarts its ramp (``actuator_timeout_ms``).
 
 ``tests/vehicle/test_actuators.py`` fails when any of them disagrees.
 
@@ -67,10 +71,14 @@ class WheelLimits(NamedTuple):
 
 
 class ActuatorLimits(NamedTuple):
-    """The four wheels' actuators, [FL, FR, RL, RR], and the command period."""
+    """The four wheels' actuators, [FL, FR, RL, RR], the command period and
+    the command timeout: an actuator that has had no valid frame for
+    ``timeout_ms`` applies 0 Nm (and the bridge restarts its ramp from zero
+    after any gap the actuator may have acted on)."""
 
     wheels: tuple[WheelLimits, WheelLimits, WheelLimits, WheelLimits]
     period_ms: float = 1e3 * CONTROL_DT
+    timeout_ms: float = 200.0
 
     def steps(self) -> dict[str, Array]:
         """The limits on the 2 Nm grid as integer steps per tick (the bridge's rule)."""
@@ -107,7 +115,8 @@ ACTUATORS = ActuatorLimits(
 
 def load_limits(path: str | PathLike[str]) -> ActuatorLimits:
     """Read the actuator limits from a bridge configuration file (``vehicle.toml``
-    schema: ``period_ms`` and ``[wheels.FL]`` ... ``[wheels.RR]`` with ``min_nm``,
+    schema: ``period_ms``, ``actuator_timeout_ms`` and ``[wheels.FL]`` ...
+    ``[wheels.RR]`` with ``min_nm``,
     ``max_nm``, ``rise_nm_per_s``, ``release_nm_per_s``; a missing key keeps
     :data:`ACTUATORS`' value). ValueError naming the key otherwise."""
     with open(path, "rb") as f:
@@ -130,8 +139,20 @@ def load_limits(path: str | PathLike[str]) -> ActuatorLimits:
         if not vals["min_nm"] <= 0.0 <= vals["max_nm"]:
             raise ValueError(f"{path}: wheels.{name}: expected min_nm <= 0 <= max_nm")
         wheels.append(WheelLimits(**vals))
-    period = cfg.get("period_ms", ACTUATORS.period_ms)
-    return ActuatorLimits(tuple(wheels), float(period))  # type: ignore[arg-type]
+    scalars = {}
+    for key, default in (
+        ("period_ms", ACTUATORS.period_ms),
+        ("actuator_timeout_ms", ACTUATORS.timeout_ms),
+    ):
+        v = cfg.get(key, default)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+            raise ValueError(f"{path}: {key}: expected a positive number, got {v!r}")
+        scalars[key] = float(v)
+    return ActuatorLimits(
+        tuple(wheels),  # type: ignore[arg-type]
+        scalars["period_ms"],
+        scalars["actuator_timeout_ms"],
+    )
 
 
 MU_MAX = 2.0
@@ -185,6 +206,7 @@ def bridge_kwargs(
     w = limits.wheels
     return {
         "period_ms": float(limits.period_ms),
+        "actuator_timeout_ms": float(limits.timeout_ms),
         "torque_min_nm": [x.min_nm for x in w],
         "torque_max_nm": [x.max_nm for x in w],
         "rise_nm_per_s": [x.rise_nm_per_s for x in w],

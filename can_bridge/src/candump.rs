@@ -4,11 +4,12 @@
 
 use crate::error::{Error, Result};
 use crate::frame::CanFrame;
+use crate::scheduler::monotonic_ns;
 use std::fmt::Write as _;
 use std::io::Write as _;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, RecvTimeoutError, SyncSender, TrySendError};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
@@ -50,16 +51,99 @@ struct Entry {
     dir: Dir,
 }
 
+/// What the log reports to `stats()`.
+#[derive(Debug, Default)]
+pub struct LogCounters {
+    /// Lines dropped because the writer fell behind (`log_dropped`).
+    pub dropped: AtomicU64,
+    /// Lines lost to write errors (`log_errors`).
+    pub errors: AtomicU64,
+    /// Lines not written by the log's bounds (`log_suppressed`).
+    pub suppressed: AtomicU64,
+    /// The last write error or bound reached, naming the file.
+    pub last_error: Mutex<Option<String>>,
+}
+
+impl LogCounters {
+    fn note(&self, msg: String) {
+        *self.last_error.lock().unwrap_or_else(|e| e.into_inner()) = Some(msg);
+    }
+}
+
+/// How a log is opened and bounded.
+#[derive(Clone, Debug)]
+pub struct LogSetup {
+    /// The file.
+    pub path: std::path::PathBuf,
+    /// Replace an existing file (never through a symbolic link).
+    pub overwrite: bool,
+    /// The channel name written on each line.
+    pub channel: String,
+    /// Most received frames logged per second, per class (the identifiers
+    /// the bridge receives, and all others), with a second's burst.
+    pub rx_per_s: u32,
+    /// Largest file, bytes.
+    pub max_bytes: u64,
+    /// Identifiers of the bridge's own received messages.
+    pub known_ids: Vec<u32>,
+}
+
+/// A token bucket: `rate` tokens a second, at most `rate` held.
+#[derive(Debug)]
+struct Bucket {
+    tokens: f64,
+    last_ns: u64,
+}
+
+/// The receive side's rate limit: one bucket for the bridge's own
+/// messages, one for every other identifier, so a flood of unknown frames
+/// never hides the vehicle's.
+#[derive(Debug)]
+struct RxLimit {
+    rate: f64,
+    known: Vec<u32>,
+    buckets: [Bucket; 2],
+}
+
+impl RxLimit {
+    fn allow(&mut self, id: u32, now_ns: u64) -> bool {
+        let b = &mut self.buckets[usize::from(!self.known.contains(&id))];
+        let dt = now_ns.saturating_sub(b.last_ns) as f64 / 1e9;
+        b.last_ns = now_ns;
+        b.tokens = (b.tokens + dt * self.rate).min(self.rate);
+        if b.tokens >= 1.0 {
+            b.tokens -= 1.0;
+            true
+        } else {
+            false
+        }
+    }
+}
+
 /// Sending side, cloned into the tick and receive threads.
 #[derive(Clone)]
 pub struct LogSender {
     tx: SyncSender<Entry>,
-    dropped: Arc<AtomicU64>,
+    counters: Arc<LogCounters>,
+    rx_limit: Arc<Mutex<RxLimit>>,
 }
 
 impl LogSender {
     /// Queue a frame without blocking; counts a drop when the queue is full.
+    /// A received frame over its class's rate is counted in `suppressed`
+    /// instead (transmitted frames are bounded by the tick rate).
     pub fn log(&self, wall_ns: u64, frame: &CanFrame, dir: Dir) {
+        if dir == Dir::Rx {
+            let ok = self
+                .rx_limit
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .allow(frame.id(), monotonic_ns());
+            if !ok {
+                self.counters.suppressed.fetch_add(1, Ordering::Relaxed);
+                return;
+            }
+        }
         match self.tx.try_send(Entry {
             wall_ns,
             frame: *frame,
@@ -67,7 +151,7 @@ impl LogSender {
         }) {
             Ok(()) => {}
             Err(TrySendError::Full(_)) | Err(TrySendError::Disconnected(_)) => {
-                self.dropped.fetch_add(1, Ordering::Relaxed);
+                self.counters.dropped.fetch_add(1, Ordering::Relaxed);
             }
         }
     }
@@ -85,9 +169,10 @@ impl LogWriter {
     }
 }
 
-/// Open `path` and start the writer thread. Lines lost to write errors (a
-/// full disk, `/dev/full`, a FIFO whose reader stalls) are counted in
-/// `errors`.
+/// Open the log and start the writer thread. Lines lost to write errors (a
+/// full disk, `/dev/full`, a file over the process's size limit, a FIFO
+/// whose reader stalls) are counted in `errors`, and the error, naming the
+/// file, is kept in `last_error`.
 ///
 /// An existing file is refused unless `overwrite` (then truncated), and a
 /// symbolic link is always refused (`O_NOFOLLOW`), so a log never clobbers
@@ -96,22 +181,22 @@ impl LogWriter {
 /// The file is opened with `O_NONBLOCK`: a FIFO without a reader is refused
 /// at once (instead of blocking `start` forever), and a FIFO whose reader
 /// stops reading costs lost (counted) lines, never a blocked `stop`.
-pub fn start(
-    path: &std::path::Path,
-    overwrite: bool,
-    channel: String,
-    dropped: Arc<AtomicU64>,
-    errors: Arc<AtomicU64>,
-) -> Result<(LogSender, LogWriter)> {
+///
+/// **Bounds.** Received frames are logged at most `rx_per_s` a second per
+/// class, and nothing once the file holds `max_bytes`; what is left out is
+/// counted in `suppressed` (`test_tx_log_*` in `tests/can_bridge`: a flood of
+/// 300,000 frames a second on the pty wrote 33 MB in 2 s before).
+pub fn start(setup: &LogSetup, counters: Arc<LogCounters>) -> Result<(LogSender, LogWriter)> {
     use std::os::unix::fs::{FileTypeExt, OpenOptionsExt};
-    let shown = crate::error::clip(&path.display().to_string());
+    let path = setup.path.as_path();
+    let shown = show_path(path);
     let meta = std::fs::symlink_metadata(path).ok();
     if meta.as_ref().is_some_and(|m| m.file_type().is_symlink()) {
         return Err(Error::Config(format!(
             "log_path {shown} is a symbolic link; give the real path"
         )));
     }
-    if meta.is_some() && !overwrite {
+    if meta.is_some() && !setup.overwrite {
         return Err(Error::Config(format!(
             "log_path {shown} exists; pass log_overwrite=True to replace it"
         )));
@@ -142,14 +227,55 @@ pub fn start(
     let out = Out {
         file,
         buf: Vec::with_capacity(FLUSH_AT + 128),
-        errors,
+        counters: counters.clone(),
+        shown: shown.clone(),
+        room: setup.max_bytes,
+        capped: false,
     };
+    let channel = setup.channel.clone();
     let handle = std::thread::Builder::new()
         .name("can_bridge-log".into())
         .spawn(move || writer_loop(rx, out, &channel))
-        .map_err(|e| Error::io("cannot start log thread", &e))?;
-    Ok((LogSender { tx, dropped }, LogWriter { handle }))
+        .map_err(|e| {
+            Error::io(
+                &format!("log_path {shown}: cannot start the log thread"),
+                &e,
+            )
+        })?;
+    let rate = f64::from(setup.rx_per_s.max(1));
+    let now = monotonic_ns();
+    let full = || Bucket {
+        tokens: rate,
+        last_ns: now,
+    };
+    let rx_limit = RxLimit {
+        rate,
+        known: setup.known_ids.clone(),
+        buckets: [full(), full()],
+    };
+    Ok((
+        LogSender {
+            tx,
+            counters,
+            rx_limit: Arc::new(Mutex::new(rx_limit)),
+        },
+        LogWriter { handle },
+    ))
 }
+
+/// A path as every message about the log shows it: whole (a path is at most
+/// `PATH_MAX`, 4096 bytes), quoted; anything longer is cut like other input.
+fn show_path(path: &std::path::Path) -> String {
+    let text = path.display().to_string();
+    if text.len() <= 4096 {
+        format!("{text:?}")
+    } else {
+        crate::error::clip(&text)
+    }
+}
+
+/// Pending lines are written at the latest this long after the last write.
+const FLUSH_EVERY: Duration = Duration::from_millis(200);
 
 /// Buffered lines are written once this many bytes are pending.
 const FLUSH_AT: usize = 8192;
@@ -167,16 +293,33 @@ const MAX_PENDING: usize = 64 * 1024;
 struct Out {
     file: std::fs::File,
     buf: Vec<u8>,
-    errors: Arc<AtomicU64>,
+    counters: Arc<LogCounters>,
+    /// The file's name as errors show it.
+    shown: String,
+    /// Bytes the file may still take (`max_bytes` less what was queued).
+    room: u64,
+    /// The cap was reached (reported once).
+    capped: bool,
 }
 
 impl Out {
     /// Queue one whole line, or count it lost when a stalled reader has left
-    /// `MAX_PENDING` bytes waiting.
+    /// `MAX_PENDING` bytes waiting, or suppressed once the file is full.
     fn push(&mut self, line: &[u8]) {
-        if self.buf.len() + line.len() > MAX_PENDING {
-            self.errors.fetch_add(1, Ordering::Relaxed);
+        let n = line.len() as u64;
+        if n > self.room {
+            self.counters.suppressed.fetch_add(1, Ordering::Relaxed);
+            if !self.capped {
+                self.capped = true;
+                self.counters.note(format!(
+                    "log_path {}: reached log_max_bytes; later lines are counted in log_suppressed, not written",
+                    self.shown
+                ));
+            }
+        } else if self.buf.len() + line.len() > MAX_PENDING {
+            self.counters.errors.fetch_add(1, Ordering::Relaxed);
         } else {
+            self.room -= n;
             self.buf.extend_from_slice(line);
         }
     }
@@ -187,41 +330,61 @@ impl Out {
     fn flush(&mut self) -> bool {
         while !self.buf.is_empty() {
             match self.file.write(&self.buf) {
-                Ok(0) => return self.lose_pending(),
+                Ok(0) => {
+                    let e = std::io::Error::new(std::io::ErrorKind::WriteZero, "wrote nothing");
+                    return self.lose_pending(Some(&e));
+                }
                 Ok(n) => {
                     self.buf.drain(..n);
                 }
                 Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
                 Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => return true,
-                Err(_) => return self.lose_pending(),
+                Err(e) => return self.lose_pending(Some(&e)),
             }
         }
         false
     }
 
-    fn lose_pending(&mut self) -> bool {
+    /// Count every line still pending as lost; `why`, naming the file, is
+    /// kept for `stats()["last_log_error"]`.
+    fn lose_pending(&mut self, why: Option<&std::io::Error>) -> bool {
         // a line already begun counts as lost too
         let lines = self.buf.iter().filter(|&&b| b == b'\n').count() as u64;
-        self.errors.fetch_add(lines, Ordering::Relaxed);
+        self.counters.errors.fetch_add(lines, Ordering::Relaxed);
         self.buf.clear();
+        if let Some(e) = why {
+            self.counters.note(format!(
+                "log_path {}: write failed: {e}; {lines} lines lost (counted in log_errors)",
+                self.shown
+            ));
+        } else if lines > 0 {
+            self.counters.note(format!(
+                "log_path {}: the reader did not take {lines} lines within 100 ms of stop",
+                self.shown
+            ));
+        }
         false
     }
 }
 
 fn writer_loop(rx: Receiver<Entry>, mut out: Out, channel: &str) {
     let mut line = String::with_capacity(64);
+    let mut flushed = std::time::Instant::now();
     loop {
-        match rx.recv_timeout(Duration::from_millis(200)) {
+        match rx.recv_timeout(FLUSH_EVERY) {
             Ok(e) => {
                 line.clear();
                 format_line(&mut line, e.wall_ns, channel, &e.frame, e.dir);
                 out.push(line.as_bytes());
-                if out.buf.len() >= FLUSH_AT {
+                // a slow, steady trickle is written too, not held for 8 KB
+                if out.buf.len() >= FLUSH_AT || flushed.elapsed() >= FLUSH_EVERY {
                     out.flush();
+                    flushed = std::time::Instant::now();
                 }
             }
             Err(RecvTimeoutError::Timeout) => {
                 out.flush();
+                flushed = std::time::Instant::now();
             }
             Err(RecvTimeoutError::Disconnected) => break,
         }
@@ -233,12 +396,23 @@ fn writer_loop(rx: Receiver<Entry>, mut out: Out, channel: &str) {
         }
         std::thread::sleep(Duration::from_millis(2));
     }
-    out.lose_pending();
+    out.lose_pending(None);
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn setup(path: &std::path::Path, overwrite: bool) -> LogSetup {
+        LogSetup {
+            path: path.to_path_buf(),
+            overwrite,
+            channel: "can0".into(),
+            rx_per_s: 1000,
+            max_bytes: 1 << 30,
+            known_ids: vec![0x201],
+        }
+    }
 
     #[test]
     fn formats_lines() {
@@ -259,10 +433,9 @@ mod tests {
     #[test]
     fn writes_a_file() {
         let dir = std::env::temp_dir().join(format!("can_bridge_log_{}", std::process::id()));
-        let dropped = Arc::new(AtomicU64::new(0));
-        let errors = Arc::new(AtomicU64::new(0));
+        let c = Arc::new(LogCounters::default());
         let _ = std::fs::remove_file(&dir);
-        let (tx, w) = start(&dir, false, "can0".into(), dropped.clone(), errors.clone()).unwrap();
+        let (tx, w) = start(&setup(&dir, false), c.clone()).unwrap();
         let f = CanFrame::new(0x101, false, &[1]).unwrap();
         for _ in 0..3 {
             tx.log(1_000_000_000, &f, Dir::Tx);
@@ -272,28 +445,79 @@ mod tests {
         let text = std::fs::read_to_string(&dir).unwrap();
         let _ = std::fs::remove_file(&dir);
         assert_eq!(text.lines().count(), 3);
-        assert_eq!(dropped.load(Ordering::Relaxed), 0);
-        assert_eq!(errors.load(Ordering::Relaxed), 0);
+        assert_eq!(c.dropped.load(Ordering::Relaxed), 0);
+        assert_eq!(c.errors.load(Ordering::Relaxed), 0);
     }
 
     #[test]
     fn write_errors_are_counted() {
-        let errors = Arc::new(AtomicU64::new(0));
-        let (tx, w) = start(
-            std::path::Path::new("/dev/full"),
-            true,
-            "can0".into(),
-            Arc::new(AtomicU64::new(0)),
-            errors.clone(),
-        )
-        .unwrap();
+        let c = Arc::new(LogCounters::default());
+        let (tx, w) = start(&setup(std::path::Path::new("/dev/full"), true), c.clone()).unwrap();
         let f = CanFrame::new(0x101, false, &[1]).unwrap();
         for _ in 0..1000 {
             tx.log(1_000_000_000, &f, Dir::Tx);
         }
         drop(tx);
         w.join();
-        assert_eq!(errors.load(Ordering::Relaxed), 1000);
+        assert_eq!(c.errors.load(Ordering::Relaxed), 1000);
+        // the error names the file
+        let e = c.last_error.lock().unwrap().clone().unwrap();
+        assert!(
+            e.starts_with("log_path \"/dev/full\": write failed: "),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn received_frames_are_rate_limited_per_class_and_the_file_is_capped() {
+        let dir = std::env::temp_dir().join(format!("can_bridge_cap_{}", std::process::id()));
+        let _ = std::fs::remove_file(&dir);
+        let c = Arc::new(LogCounters::default());
+        let mut su = setup(&dir, false);
+        su.rx_per_s = 100;
+        su.max_bytes = 20_000;
+        let (tx, w) = start(&su, c.clone()).unwrap();
+        let unknown = CanFrame::new(0x7FF, false, &[1]).unwrap();
+        let known = CanFrame::new(0x201, false, &[2]).unwrap();
+        // a flood far faster than the rate: about a second's burst of each
+        // class gets through, well within the test's time
+        for _ in 0..5_000 {
+            tx.log(1, &unknown, Dir::Rx);
+        }
+        for _ in 0..150 {
+            tx.log(1, &known, Dir::Rx);
+        }
+        drop(tx);
+        w.join();
+        let text = std::fs::read_to_string(&dir).unwrap();
+        let _ = std::fs::remove_file(&dir);
+        let n_unknown = text.lines().filter(|l| l.contains(" 7FF#")).count();
+        let n_known = text.lines().filter(|l| l.contains(" 201#")).count();
+        assert!((100..=110).contains(&n_unknown), "{n_unknown}");
+        assert!((100..=110).contains(&n_known), "{n_known}");
+        let suppressed = c.suppressed.load(Ordering::Relaxed) as usize;
+        assert_eq!(n_unknown + n_known + suppressed, 5_150);
+        // the cap: a tiny file holds what fits, counts the rest
+        let c = Arc::new(LogCounters::default());
+        su.rx_per_s = 1_000_000;
+        su.max_bytes = 4096;
+        let (tx, w) = start(&su, c.clone()).unwrap();
+        for _ in 0..1_000 {
+            tx.log(1, &known, Dir::Tx);
+        }
+        drop(tx);
+        w.join();
+        let len = std::fs::metadata(&dir).unwrap().len();
+        let text = std::fs::read_to_string(&dir).unwrap();
+        let _ = std::fs::remove_file(&dir);
+        assert!(len <= 4096 && len > 4000, "{len}");
+        let lines = text.lines().count() as u64;
+        assert_eq!(lines + c.suppressed.load(Ordering::Relaxed), 1_000);
+        let e = c.last_error.lock().unwrap().clone().unwrap();
+        assert!(
+            e.contains(&dir.display().to_string()) && e.contains("log_max_bytes"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -306,13 +530,7 @@ mod tests {
         let (done_tx, done_rx) = std::sync::mpsc::channel();
         let p = dir.clone();
         std::thread::spawn(move || {
-            let r = start(
-                &p,
-                true,
-                "can0".into(),
-                Arc::new(AtomicU64::new(0)),
-                Arc::new(AtomicU64::new(0)),
-            );
+            let r = start(&setup(&p, true), Arc::new(LogCounters::default()));
             let _ = done_tx.send(r.map(|_| ()));
         });
         let r = done_rx.recv_timeout(Duration::from_secs(3));
@@ -351,11 +569,14 @@ mod tests {
                 std::fs::File::from_raw_fd(fds[1]),
             )
         };
-        let errors = Arc::new(AtomicU64::new(0));
+        let counters = Arc::new(LogCounters::default());
         let mut out = Out {
             file: w,
             buf: Vec::new(),
-            errors: errors.clone(),
+            counters: counters.clone(),
+            shown: "pipe".into(),
+            room: u64::MAX,
+            capped: false,
         };
         let f = CanFrame::new(0x101, false, &[1, 2, 3, 4, 5, 6, 7, 8]).unwrap();
         let mut line = String::new();
@@ -394,7 +615,7 @@ mod tests {
             );
             arrived += 1;
         }
-        let lost = errors.load(Ordering::Relaxed);
+        let lost = counters.errors.load(Ordering::Relaxed);
         assert!(lost > 0, "the slow reader should have cost lines");
         assert_eq!(arrived + lost, sent);
     }

@@ -11,7 +11,7 @@ use crate::safety::{LimitRule, WHEELS};
 use std::path::Path;
 use toml::{Table, Value};
 
-const TOP: [&str; 23] = [
+const TOP: [&str; 27] = [
     "period_ms",
     "limit_rule",
     "safe_release_nm_per_s",
@@ -20,6 +20,10 @@ const TOP: [&str; 23] = [
     "fault_after_ms",
     "state_timeout_ms",
     "transport_timeout_ms",
+    "actuator_timeout_ms",
+    "socketcand_active",
+    "log_rx_per_s",
+    "log_max_bytes",
     "stop_safe_frames",
     "rx_max_counter_delta",
     "rx_sync_frames",
@@ -103,6 +107,17 @@ pub fn apply_str(cfg: &mut BridgeConfig, text: &str, origin: &str) -> Result<()>
             "fault_after_ms" => cfg.safety.fault_after_ns = ms_to_ns(name, number(v, name)?)?,
             "state_timeout_ms" => cfg.state_timeout_ns = ms_to_ns(name, number(v, name)?)?,
             "transport_timeout_ms" => cfg.transport_timeout_ns = ms_to_ns(name, number(v, name)?)?,
+            "actuator_timeout_ms" => cfg.actuator_timeout_ns = ms_to_ns(name, number(v, name)?)?,
+            "socketcand_active" => match v {
+                Value::Boolean(b) => cfg.socketcand_active = *b,
+                _ => {
+                    return Err(Error::Config(
+                        "socketcand_active must be true or false".into(),
+                    ))
+                }
+            },
+            "log_rx_per_s" => cfg.log_rx_per_s = integer(v, name, 1, 1_000_000)? as u32,
+            "log_max_bytes" => cfg.log_max_bytes = integer(v, name, 4096, 1 << 50)? as u64,
             "safe_release_nm_per_s" => cfg.safety.safe_release_nm_per_s = number(v, name)?,
             "limit_rule" => match v {
                 Value::String(s) => cfg.safety.limit_rule = LimitRule::parse(s)?,

@@ -408,6 +408,19 @@ impl Safety {
         (self.mode, self.output())
     }
 
+    /// One tick on a transport where the age rule cannot hold for an
+    /// active frame: the watchdog runs as in [`Safety::step`] (a silent
+    /// controller still latches a fault), but the output is released toward
+    /// zero at the safe rate and the frame is `Safe` (`Fault` if latched).
+    /// Also returns the mode [`Safety::step`] would have sent.
+    pub fn step_safe_only(&mut self, now_ns: u64, cmd: Option<&Command>) -> (Mode, [f64; 4], Mode) {
+        let (before, limited) = (self.output_steps, self.rate_limited);
+        let (would, _) = self.step(now_ns, cmd);
+        (self.output_steps, self.rate_limited) = (before, limited);
+        let (mode, torques) = self.stopping();
+        (mode, torques, would)
+    }
+
     fn release_to_zero(&mut self) {
         let d = self.safe_release;
         for s in &mut self.output_steps {
@@ -630,6 +643,27 @@ mod tests {
         assert_eq!(s.stopping().1, [0.0; 4]);
         s.step(2000 * MS, Some(&c));
         assert_eq!(s.stopping().0, Mode::Fault);
+    }
+
+    #[test]
+    fn safe_only_releases_and_still_latches_a_fault() {
+        let mut s = Safety::new(cfg(), PERIOD, 0);
+        let c = |k: u64| Command::new([100.0; 4], k, k * PERIOD).unwrap();
+        for k in 1..=10 {
+            s.step(k * PERIOD, Some(&c(k)));
+        }
+        let up = s.output();
+        assert!(up[2] > 0.0);
+        let (m, t, would) = s.step_safe_only(11 * PERIOD, Some(&c(11)));
+        assert_eq!((m, would), (Mode::Safe, Mode::Active));
+        assert!(t[2] < up[2] && t[2] >= 0.0, "{t:?} from {up:?}");
+        // a silent controller still ends in a latched fault
+        let mut k = 12;
+        while s.step_safe_only(k * PERIOD, None).0 != Mode::Fault {
+            k += 1;
+            assert!(k < 1_000);
+        }
+        assert_eq!(s.output(), [0.0; 4]);
     }
 
     #[test]

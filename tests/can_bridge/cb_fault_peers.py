@@ -7,6 +7,7 @@ are checked by cb_peers (cantools + autosar-e2e)."""
 from __future__ import annotations
 
 import os
+import random
 import re
 import select
 import socket
@@ -235,9 +236,19 @@ class SocketcandBus:
     stops being scheduled; ``stall_after(n)`` stalls once the n-th frame
     from now is on the bus and the echo behind it answered: between two of
     the bridge's ticks, the phase at which a frame handed to TCP at the
-    next tick could only reach the bus when the server resumes."""
+    next tick could only reach the bus when the server resumes;
+    ``stall_after_probe()`` stalls right after answering the next tick's
+    probe (the echo after the next frame's own), the phase at which the
+    frame written at that deadline reaches the server's kernel only.
+    ``echo=False``: a server that never answers ``< echo >``; ``slow``: a
+    server that sleeps up to that many seconds (uniformly) before each read."""
 
-    def __init__(self) -> None:
+    def __init__(self, *, echo: bool = True, slow: float = 0.0) -> None:
+        self.echo = echo
+        self.slow = slow
+        self._rng = random.Random(4)
+        self._probe_arm = False
+        self._echoes_to_stall = 0
         self.frames: list[tuple[float, int, bytes]] = []  # (time.time(), id, data)
         self.errors: list[str] = []
         self.reading = threading.Event()
@@ -295,6 +306,8 @@ class SocketcandBus:
             if not self.reading.is_set():
                 time.sleep(0.002)
                 continue
+            if self.slow:
+                time.sleep(self._rng.random() * self.slow)
             try:
                 chunk = conn.recv(65536)
             except TimeoutError:
@@ -306,10 +319,16 @@ class SocketcandBus:
                 i = buf.find(b">")
                 msg, buf = buf[: i + 1], buf[i + 1 :]
                 if b"echo" in msg:
+                    if not self.echo:
+                        continue
                     conn.sendall(b"< echo >")
                     if self._stall_on_echo:
                         self._stall_on_echo = False
                         self.reading.clear()
+                    if self._echoes_to_stall:
+                        self._echoes_to_stall -= 1
+                        if not self._echoes_to_stall:
+                            self.reading.clear()
                     continue
                 m = SEND_RE.search(msg)
                 if m:
@@ -336,6 +355,10 @@ class SocketcandBus:
             if self._stall_at is not None and len(self.frames) >= self._stall_at:
                 self._stall_at = None
                 self._stall_on_echo = True
+            if self._probe_arm:
+                # this frame's own echo, then the next tick's probe
+                self._probe_arm = False
+                self._echoes_to_stall = 2
 
     def stall(self) -> None:
         self.reading.clear()
@@ -343,6 +366,10 @@ class SocketcandBus:
     def stall_after(self, n_more: int) -> None:
         with self._lock:
             self._stall_at = len(self.frames) + n_more
+
+    def stall_after_probe(self) -> None:
+        with self._lock:
+            self._probe_arm = True
 
     def resume(self) -> None:
         self.reading.set()

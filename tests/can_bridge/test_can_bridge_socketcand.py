@@ -1,6 +1,6 @@
 """``socketcand:HOST:PORT/BUS`` against a socketcand-protocol test server
 written here from the protocol (handshake replies sent one per ``send`` with
-TCP_NODELAY, frames as contiguous hex)."""
+TCP_NODELAY, frames as contiguous hex, ``< echo >`` answered as in raw mode)."""
 
 from __future__ import annotations
 
@@ -81,16 +81,20 @@ class Server:
                 if not chunk:
                     break
                 buf += chunk
-                while True:
-                    m = SEND_RE.search(buf)
+                while b">" in buf:
+                    i = buf.find(b">")
+                    msg, buf = buf[: i + 1], buf[i + 1 :]
+                    if b"echo" in msg:  # answered in raw mode, as socketcand's state_raw.c
+                        conn.sendall(b"< echo >")
+                        continue
+                    m = SEND_RE.search(msg)
                     if not m:
-                        break
+                        continue
                     ident, n, body = m.group(1), int(m.group(2)), m.group(3).split()
                     data = bytes(int(b, 16) for b in body)
                     if len(data) != n:
                         self.errors.append(f"length mismatch in {m.group(0)!r}")
                     self.sent.append((int(ident, 16), len(ident) == 8, data))
-                    buf = buf[m.end() :]
         except Exception as e:  # reported by the test
             self.errors.append(repr(e))
         finally:
@@ -100,7 +104,10 @@ class Server:
 
 def test_socketcand_transport_end_to_end() -> None:
     srv = Server()
-    bridge = can_bridge.Bridge(f"socketcand:127.0.0.1:{srv.port}/can0", period_ms=20)
+    # active frames over TCP only when its residual is accepted (bus-safety.md)
+    bridge = can_bridge.Bridge(
+        f"socketcand:127.0.0.1:{srv.port}/can0", period_ms=20, socketcand_active=True
+    )
     with bridge:
         seq = 0
         end = time.monotonic() + 0.6

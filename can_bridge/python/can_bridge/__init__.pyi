@@ -22,8 +22,8 @@ __version__: str
 DEFAULT_CONFIG_TOML: str
 
 Mode = Literal["active", "hold", "safe", "fault"]
-SafetyState = Literal["active", "hold", "safe", "fault", "lost", "not_open"]
-TransportState = Literal["up", "not_open", "lost"]
+SafetyState = Literal["active", "hold", "safe", "fault", "lost", "not_open", "safe_only"]
+TransportState = Literal["up", "not_open", "lost", "unverified"]
 PerWheel = float | Sequence[float]
 
 class RxStatus(TypedDict):
@@ -70,6 +70,7 @@ class Stats(TypedDict):
     last_limit_event: str | None
     rate_limited_ticks: int
     ramp_restarts: int
+    tx_safe_only: int
     transport_state: TransportState
     transport_losses: int
     reconnects: int
@@ -93,6 +94,8 @@ class Stats(TypedDict):
     bus_errors: int
     log_dropped: int
     log_errors: int
+    log_suppressed: int
+    last_log_error: str | None
     safety_state: SafetyState
     tx_mode: Mode
     state_valid: bool
@@ -119,9 +122,13 @@ class Bridge:
         fault_after_ms: float | None = None,
         state_timeout_ms: float | None = None,
         transport_timeout_ms: float | None = None,
+        actuator_timeout_ms: float | None = None,
+        socketcand_active: bool | None = None,
         on_transport_loss: Literal["report", "raise"] | None = None,
         log_path: str | PathLike[str] | None = None,
         log_overwrite: bool | None = None,
+        log_rx_per_s: int | None = None,
+        log_max_bytes: int | None = None,
         bitrate: int | None = None,
         stop_safe_frames: int | None = None,
         rx_max_counter_delta: int | None = None,

@@ -3,11 +3,12 @@
 //! them at `stop`; every run with fresh state.
 
 use super::{lock, run_rx, run_tx, BridgeConfig, Shared, TxParams, VehicleState};
-use crate::candump::{self, LogWriter};
+use crate::candump::{self, LogSetup, LogWriter};
 use crate::channel::ChannelSpec;
+use crate::codec::RX_MESSAGES;
 use crate::error::{Error, Result};
 use crate::scheduler::{monotonic_ns, MonotonicClock};
-use crate::transport;
+use crate::transport::{self, OpenOptions};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
@@ -86,18 +87,26 @@ impl Bridge {
         *lock(&self.shared) = shared.clone();
         let (log_tx, log_writer) = match &self.cfg.log_path {
             Some(p) => {
-                let (s, w) = candump::start(
-                    p,
-                    self.cfg.log_overwrite,
-                    self.spec.log_name(),
-                    shared.log_dropped.clone(),
-                    shared.log_errors.clone(),
-                )?;
+                let setup = LogSetup {
+                    path: p.clone(),
+                    overwrite: self.cfg.log_overwrite,
+                    channel: self.spec.log_name(),
+                    rx_per_s: self.cfg.log_rx_per_s,
+                    max_bytes: self.cfg.log_max_bytes,
+                    known_ids: RX_MESSAGES.iter().map(|m| m.id).collect(),
+                };
+                let (s, w) = candump::start(&setup, shared.log.clone())?;
                 (Some(s), Some(w))
             }
             None => (None, None),
         };
-        let opened = transport::open(&self.spec, self.cfg.bitrate)?;
+        let opened = transport::open(
+            &self.spec,
+            OpenOptions {
+                bitrate: self.cfg.bitrate,
+                socketcand_active: self.cfg.socketcand_active,
+            },
+        )?;
         // Published only once the run is up, so a failed start leaves no
         // path to a pty that is already closed again.
         let pty_path = opened.pty_path.clone();
@@ -108,6 +117,7 @@ impl Bridge {
             safety: self.cfg.safety,
             stop_safe_frames: self.cfg.stop_safe_frames,
             transport_timeout_ns: self.cfg.transport_timeout_ns,
+            actuator_timeout_ns: self.cfg.actuator_timeout_ns,
         };
         let mut sink = opened.sink;
         let mut source = opened.source;

@@ -48,12 +48,25 @@ pub struct BridgeConfig {
     /// The transport is reported lost when no frame has reached it (written
     /// and taken by the peer) for this long, ns.
     pub transport_timeout_ns: u64,
+    /// The actuator applies 0 Nm after this long without a frame (the
+    /// actuator contract): a gap in what the peer took that may reach it
+    /// restarts the ramp from zero, ns.
+    pub actuator_timeout_ns: u64,
     /// Report or raise on a lost transport.
     pub on_transport_loss: OnTransportLoss,
+    /// Allow active frames over socketcand, accepting its residual (a
+    /// server that stops reading right after answering its probe reads that
+    /// frame when it resumes); otherwise only safe frames go out on it.
+    pub socketcand_active: bool,
     /// candump log of every frame sent and received.
     pub log_path: Option<PathBuf>,
     /// Replace an existing `log_path` (never through a symbolic link).
     pub log_overwrite: bool,
+    /// Most received frames logged per second (a token bucket with a
+    /// second's burst); the rest are counted in `log_suppressed`.
+    pub log_rx_per_s: u32,
+    /// Largest log file, bytes: later lines are counted, not written.
+    pub log_max_bytes: u64,
     /// CAN bit rate requested from SLCAN adapters.
     pub bitrate: u32,
     /// Zero-torque frames sent on stop once the output is released (>= 1).
@@ -85,9 +98,13 @@ impl BridgeConfig {
             safety: SafetyConfig::default(),
             state_timeout_ns: 250_000_000,
             transport_timeout_ns: 250_000_000,
+            actuator_timeout_ns: 200_000_000,
             on_transport_loss: OnTransportLoss::Report,
+            socketcand_active: false,
             log_path: None,
             log_overwrite: false,
+            log_rx_per_s: 1000,
+            log_max_bytes: 256 << 20,
             bitrate: 500_000,
             stop_safe_frames: 3,
             rx_max_counter_delta: 2,
@@ -136,6 +153,25 @@ impl BridgeConfig {
                 "transport_timeout_ms = {} must be between period_ms ({}) and 10000",
                 ms(self.transport_timeout_ns),
                 ms(self.period_ns)
+            )));
+        }
+        if !(2 * self.period_ns..=10_000_000_000).contains(&self.actuator_timeout_ns) {
+            return Err(Error::Config(format!(
+                "actuator_timeout_ms = {} must be between two periods ({}) and 10000: a reader that takes frames late in their period sees gaps of two periods",
+                ms(self.actuator_timeout_ns),
+                ms(2 * self.period_ns)
+            )));
+        }
+        if !(1..=1_000_000).contains(&self.log_rx_per_s) {
+            return Err(Error::Config(format!(
+                "log_rx_per_s = {} must be in 1..=1000000",
+                self.log_rx_per_s
+            )));
+        }
+        if !(4096..=(1u64 << 50)).contains(&self.log_max_bytes) {
+            return Err(Error::Config(format!(
+                "log_max_bytes = {} must be in 4096..=2**50",
+                self.log_max_bytes
             )));
         }
         if !(1..=100).contains(&self.stop_safe_frames) {
@@ -256,6 +292,18 @@ mod tests {
             (
                 Box::new(|c: &mut BridgeConfig| c.transport_timeout_ns = MS),
                 "transport_timeout_ms",
+            ),
+            (
+                Box::new(|c: &mut BridgeConfig| c.actuator_timeout_ns = 99 * MS),
+                "actuator_timeout_ms = 99 must be between two periods (100)",
+            ),
+            (
+                Box::new(|c: &mut BridgeConfig| c.log_rx_per_s = 0),
+                "log_rx_per_s",
+            ),
+            (
+                Box::new(|c: &mut BridgeConfig| c.log_max_bytes = 10),
+                "log_max_bytes",
             ),
         ] {
             let mut c = config();

@@ -3,10 +3,11 @@
 //! `set_command`), the reset and stop requests, and each side's counters.
 
 use super::{lock, BridgeConfig, OnTransportLoss, RxStore, TxCounters};
+use crate::candump::LogCounters;
 use crate::error::{Error, Result};
 use crate::safety::{Command, LimitRule, Safety, SafetyConfig, WHEELS};
 use crate::transport::Health;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
 /// Largest accepted `seq` (exclusive) and the largest step between two
@@ -40,8 +41,7 @@ pub struct Shared {
     pub(super) on_loss: OnTransportLoss,
     pub(super) tx: Mutex<TxCounters>,
     pub(super) rx: Mutex<RxStore>,
-    pub(super) log_dropped: Arc<AtomicU64>,
-    pub(super) log_errors: Arc<AtomicU64>,
+    pub(super) log: Arc<LogCounters>,
     pub(super) health: Mutex<Option<Arc<Health>>>,
 }
 
@@ -62,8 +62,7 @@ impl Shared {
             on_loss: cfg.on_transport_loss,
             tx: Mutex::new(TxCounters::new(cfg.period_ns, cfg.trace_capacity)),
             rx: Mutex::new(RxStore::new(cfg.rx_config())),
-            log_dropped: Arc::new(AtomicU64::new(0)),
-            log_errors: Arc::new(AtomicU64::new(0)),
+            log: Arc::new(LogCounters::default()),
             health: Mutex::new(None),
         }
     }

@@ -37,6 +37,12 @@ pub struct Stats {
     /// Gaps in transmission (not open, a write error, the link down or
     /// lost) that restarted a non-zero output's ramp from zero.
     pub ramp_restarts: u64,
+    /// Frames sent safe instead of active or hold because the transport
+    /// cannot keep the age rule (socketcand without `socketcand_active`, or
+    /// a server that does not answer echoes).
+    pub tx_safe_only: u64,
+    /// The last frame written went out under that rule.
+    pub safe_only: bool,
     /// Transport state.
     pub transport_state: TransportState,
     /// Times the transport was lost.
@@ -85,6 +91,11 @@ pub struct Stats {
     pub log_dropped: u64,
     /// Log lines lost to write errors (full disk, `/dev/full`, a stalled FIFO).
     pub log_errors: u64,
+    /// Log lines not written by the log's bounds: received frames over
+    /// `log_rx_per_s`, and every line once the file holds `log_max_bytes`.
+    pub log_suppressed: u64,
+    /// The last write error of the log or its cap, naming the file.
+    pub last_log_error: Option<String>,
     /// Mode of the last frame that reached the wire.
     pub safety_state: Mode,
     /// Whether the received state is currently valid.
@@ -116,6 +127,7 @@ impl Bridge {
                 )
             })
             .unwrap_or((0, 0));
+        let last_log_error = lock(&sh.log.last_error).clone();
         let tx = lock(&sh.tx);
         let rx = lock(&sh.rx).clone();
         Stats {
@@ -131,6 +143,8 @@ impl Bridge {
             last_limit_event,
             rate_limited_ticks: tx.rate_limited_ticks,
             ramp_restarts: tx.ramp_restarts,
+            tx_safe_only: tx.tx_safe_only,
+            safe_only: tx.safe_only,
             transport_state: tx.transport,
             transport_losses: tx.transport_losses,
             reconnects,
@@ -152,8 +166,10 @@ impl Bridge {
             rx_unknown_id: rx.rx_unknown_id,
             rx_transport_errors: rx.rx_transport_errors,
             bus_errors: rx.bus_errors,
-            log_dropped: sh.log_dropped.load(Ordering::Relaxed),
-            log_errors: sh.log_errors.load(Ordering::Relaxed),
+            log_dropped: sh.log.dropped.load(Ordering::Relaxed),
+            log_errors: sh.log.errors.load(Ordering::Relaxed),
+            log_suppressed: sh.log.suppressed.load(Ordering::Relaxed),
+            last_log_error,
             safety_state: tx.mode,
             state_valid: state.valid,
             state_reason: state.reason,

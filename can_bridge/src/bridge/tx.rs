@@ -1,5 +1,16 @@
 //! The transmit loop: one frame per absolute deadline, the watchdog and the
 //! limiter, the age rule's outcome per tick and the transport's health.
+//!
+//! **Gaps restart the ramp.** The actuator applies 0 Nm once it has had no
+//! frame for its timeout (`actuator_timeout_ms`, the contract
+//! `ampc_jax.vehicle.actuators` and `vehicle.toml` share). The bridge knows
+//! when the peer took a frame only at the next tick (the pty's unread
+//! bytes, an echo or acknowledgement answered, the socket's queue empty),
+//! and a frame written now may be read up to a period later (the age rule
+//! discards it then); so it restarts the output from 0 Nm whenever the time
+//! since the write of the last frame known taken, plus one period, reaches
+//! the actuator's timeout: every frame the actuator may read after acting
+//! on a gap is a ramp from zero (`test_tx_gap_*` in `tests/can_bridge`).
 
 use super::{lock, Shared};
 use crate::candump::{Dir, LogSender};
@@ -7,7 +18,7 @@ use crate::codec::{encode_torque_cmd, Mode};
 use crate::e2e;
 use crate::safety::{Safety, SafetyConfig};
 use crate::scheduler::{realtime_ns, Clock, Schedule, TickRecord, TickStats};
-use crate::transport::{Gate, Health, Sink, Written};
+use crate::transport::{Assurance, Gate, Health, Sink, Written};
 use std::sync::atomic::Ordering;
 
 /// State of the transport as the transmit thread sees it.
@@ -17,6 +28,9 @@ pub enum TransportState {
     Up,
     /// An SLCAN pty peer has not opened the channel (nothing to lose yet).
     NotOpen,
+    /// Frames reach the peer, but it gives no sign of what it has read (a
+    /// socketcand server that does not answer echoes): only safe frames go.
+    Unverified,
     /// Nothing has reached the peer for `transport_timeout`, or the link broke.
     Lost,
 }
@@ -27,6 +41,7 @@ impl TransportState {
         match self {
             TransportState::Up => "up",
             TransportState::NotOpen => "not_open",
+            TransportState::Unverified => "unverified",
             TransportState::Lost => "lost",
         }
     }
@@ -45,6 +60,8 @@ pub struct TxCounters {
     pub(super) applied: [f64; 4],
     pub(super) rate_limited_ticks: u64,
     pub(super) ramp_restarts: u64,
+    pub(super) tx_safe_only: u64,
+    pub(super) safe_only: bool,
     pub(super) transport: TransportState,
     pub(super) transport_losses: u64,
     pub(super) last_error: Option<String>,
@@ -63,6 +80,8 @@ impl TxCounters {
             applied: [0.0; 4],
             rate_limited_ticks: 0,
             ramp_restarts: 0,
+            tx_safe_only: 0,
+            safe_only: false,
             transport: TransportState::NotOpen,
             transport_losses: 0,
             last_error: None,
@@ -81,6 +100,9 @@ pub struct TxParams {
     pub stop_safe_frames: u32,
     /// Loss after this long without a frame reaching the peer, ns.
     pub transport_timeout_ns: u64,
+    /// The actuator applies 0 Nm after this long without a frame, ns: a gap
+    /// that may reach it restarts the ramp.
+    pub actuator_timeout_ns: u64,
 }
 
 /// Largest number of release frames on stop (4096 Nm at one 2 Nm step a
@@ -113,8 +135,13 @@ pub fn run_tx<C: Clock>(
     let mut last_good = t0;
     let mut state = TransportState::NotOpen;
     // The last tick put no frame on the wire because of a gap (not open, a
-    // write error, the link down or lost).
+    // write error, the link down or lost, or silence the actuator may have
+    // acted on).
     let mut in_gap = true;
+    // Write time of the last frame whose fate is not known yet (taken or
+    // flushed), and of the last frame known taken by the peer.
+    let mut pending_ns: Option<u64> = None;
+    let mut taken_ns = t0;
     loop {
         let deadline = sched.deadline();
         if let Some(lead) = sink.probe_lead_ns(p.period_ns) {
@@ -139,12 +166,28 @@ pub fn run_tx<C: Clock>(
         let link_up = health.is_none_or(|h| h.link_up.load(Ordering::Acquire));
         let flushed = ready.as_ref().map_or(0, |r| r.flushed);
         let gate = ready.as_ref().map(|r| r.gate);
+        let assurance = sink.assurance();
+        match (pending_ns, &ready) {
+            (Some(_), Ok(r)) if r.flushed > 0 => pending_ns = None,
+            (Some(w), Ok(r)) if r.gate == Gate::Open => {
+                taken_ns = w;
+                pending_ns = None;
+            }
+            _ => {}
+        }
+        // The frame written now may be read up to a period from now: if the
+        // actuator's last frame may then be a timeout old, it may have
+        // acted on the gap.
+        let silent = before.saturating_sub(taken_ns) + p.period_ns >= p.actuator_timeout_ns;
         let mut tx = lock(&shared.tx);
         // A gap in transmission restarts the ramp from zero: the actuator
         // has seen nothing (a channel not open, a write error, a link down,
-        // reconnecting or lost) and may have timed out or been reset.
-        let gap =
-            !link_up || state == TransportState::Lost || matches!(gate, Err(_) | Ok(Gate::NotOpen));
+        // reconnecting or lost, or nothing taken for its timeout) and may
+        // have timed out or been reset.
+        let gap = silent
+            || !link_up
+            || state == TransportState::Lost
+            || matches!(gate, Err(_) | Ok(Gate::NotOpen));
         if gap {
             if !in_gap && safety.output_steps() != [0; 4] {
                 tx.ramp_restarts += 1;
@@ -156,8 +199,15 @@ pub fn run_tx<C: Clock>(
             .command_at(deadline)
             .filter(|c| c.received_ns >= stale_before);
         let seen = safety.output_steps();
+        // Where the age rule cannot hold, only safe frames go out.
+        let safe_only = assurance != Assurance::Holds;
+        let mut replaced = false;
         let (mode, mut torques) = if stopping.is_some() {
             safety.stopping()
+        } else if safe_only {
+            let (m, t, would) = safety.step_safe_only(deadline, cmd.as_ref());
+            replaced = matches!(would, Mode::Active | Mode::Hold);
+            (m, t)
         } else {
             safety.step(deadline, cmd.as_ref())
         };
@@ -179,6 +229,9 @@ pub fn run_tx<C: Clock>(
         };
         let done = clock.now_ns();
         let written = matches!(outcome, Ok(Written::Yes));
+        if written {
+            pending_ns = Some(before);
+        }
         if outcome.is_err() {
             safety.restart_output();
         } else if !written {
@@ -201,6 +254,8 @@ pub fn run_tx<C: Clock>(
             || (!good && !not_open && done.saturating_sub(last_good) >= p.transport_timeout_ns)
         {
             TransportState::Lost
+        } else if good && assurance == Assurance::Unverified {
+            TransportState::Unverified
         } else if good {
             TransportState::Up
         } else if not_open && state != TransportState::Lost {
@@ -237,6 +292,8 @@ pub fn run_tx<C: Clock>(
                 tx.tx_frames += 1;
                 tx.applied = torques;
                 tx.mode = mode;
+                tx.safe_only = safe_only && stopping.is_none();
+                tx.tx_safe_only += u64::from(replaced);
                 counter = e2e::next_counter(counter);
                 if let (Some(l), Ok(f)) = (log, &frame) {
                     l.log(realtime_ns(), f, Dir::Tx);
@@ -349,6 +406,7 @@ mod tests {
             safety: c.safety,
             stop_safe_frames: 3,
             transport_timeout_ns: 200 * MS,
+            actuator_timeout_ns: 200 * MS,
         }
     }
 
@@ -712,6 +770,46 @@ mod tests {
         let d = by_tick(&frames, &ticks);
         assert!(d[5].is_none());
         assert_eq!((d[4].unwrap().2[0], d[6].unwrap().2[0]), (50.0, 60.0));
+    }
+
+    #[test]
+    fn a_gap_the_actuator_may_have_acted_on_restarts_the_ramp() {
+        // The actuator times out after 200 ms (four periods). Frames the peer
+        // never took (flushed unread at the next tick, or held back) leave a
+        // gap; a frame written now may be read a period later. One frame
+        // lost: the gap can reach 150 ms, the ramp goes on; two in a row: it
+        // can reach 200 ms, the ramp restarts from zero.
+        let flushed = Outcome {
+            written: Written::Yes,
+            flushed: 1,
+        };
+        for (lost, what) in [
+            (1, flushed),
+            (2, flushed),
+            (3, flushed),
+            (2, Outcome::DROPPED),
+        ] {
+            let (frames, shared, _, ticks) = held_at_100(move |n| {
+                if (10..10 + lost).contains(&n) {
+                    what
+                } else {
+                    Outcome::YES
+                }
+            });
+            let d = by_tick(&frames, &ticks);
+            let t = |k: usize| d[k].map(|x| x.2[0]);
+            assert_eq!(t(9), Some(100.0));
+            let restarts = lock(&shared.tx).ramp_restarts;
+            if lost == 1 {
+                assert_eq!((t(10), t(11)), (Some(100.0), Some(100.0)));
+                assert_eq!(restarts, 0);
+            } else {
+                // the first frame the actuator may read after the gap
+                let k = if what == flushed { 11 } else { 12 };
+                assert_eq!(t(k), Some(10.0), "{lost} {what:?}: {d:?}");
+                assert_eq!(restarts, 1);
+            }
+        }
     }
 
     #[test]

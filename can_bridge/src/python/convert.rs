@@ -377,8 +377,24 @@ pub const SETTINGS: &[(&str, Setting)] = &[
         "on_transport_loss",
         Setting::Text("\"report\" or \"raise\"", on_loss),
     ),
+    (
+        "actuator_timeout_ms",
+        Setting::Ms(|c| &mut c.actuator_timeout_ns),
+    ),
+    (
+        "socketcand_active",
+        Setting::Flag(|c| &mut c.socketcand_active),
+    ),
     ("log_path", Setting::Path(|c| &mut c.log_path)),
     ("log_overwrite", Setting::Flag(|c| &mut c.log_overwrite)),
+    (
+        "log_rx_per_s",
+        Setting::Int(1, 1_000_000, |c, v| c.log_rx_per_s = v as u32),
+    ),
+    (
+        "log_max_bytes",
+        Setting::Int(4096, 1 << 50, |c, v| c.log_max_bytes = v as u64),
+    ),
     (
         "bitrate",
         Setting::Int(1, u32::MAX as i64, |c, v| c.bitrate = v as u32),
@@ -630,6 +646,7 @@ pub fn stats_dict<'py>(py: Python<'py>, s: &Stats) -> PyResult<Bound<'py, PyDict
     d.set_item("last_limit_event", s.last_limit_event.as_deref())?;
     d.set_item("rate_limited_ticks", s.rate_limited_ticks)?;
     d.set_item("ramp_restarts", s.ramp_restarts)?;
+    d.set_item("tx_safe_only", s.tx_safe_only)?;
     d.set_item("transport_state", s.transport_state.name())?;
     d.set_item("transport_losses", s.transport_losses)?;
     d.set_item("reconnects", s.reconnects)?;
@@ -653,6 +670,8 @@ pub fn stats_dict<'py>(py: Python<'py>, s: &Stats) -> PyResult<Bound<'py, PyDict
     d.set_item("bus_errors", s.bus_errors)?;
     d.set_item("log_dropped", s.log_dropped)?;
     d.set_item("log_errors", s.log_errors)?;
+    d.set_item("log_suppressed", s.log_suppressed)?;
+    d.set_item("last_log_error", s.last_log_error.as_deref())?;
     // What the wire saw: nothing while the transport is lost or the channel
     // not open, else the mode of the last frame that reached it.
     d.set_item(
@@ -660,6 +679,7 @@ pub fn stats_dict<'py>(py: Python<'py>, s: &Stats) -> PyResult<Bound<'py, PyDict
         match s.transport_state {
             TransportState::Lost if s.running => "lost",
             TransportState::NotOpen if s.running => "not_open",
+            _ if s.running && s.safe_only => "safe_only",
             _ => s.safety_state.name(),
         },
     )?;

@@ -8,6 +8,10 @@
 //! the kernel allows, or else does not add to it (`Written::Dropped`). Each
 //! such frame is counted in `tx_stale_dropped`; a transport on which no
 //! frame gets through for `transport_timeout_ms` is reported lost.
+//!
+//! Where a transport cannot keep the rule for an active frame (TCP cannot
+//! take back bytes the server's kernel holds), its sink says so through
+//! [`Sink::assurance`] and the bridge sends only safe frames on it.
 
 pub mod fd;
 pub mod slcan_stream;
@@ -61,6 +65,22 @@ impl Ready {
         gate: Gate::Open,
         flushed: 0,
     };
+}
+
+/// Whether the age rule holds on a transport for the frame about to be
+/// written: only then may the frame be active (or hold a torque).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Assurance {
+    /// The sink sees what the peer has taken and discards or withholds
+    /// what it has not: any frame may go out.
+    Holds,
+    /// The peer gives no sign of what it has read (a socketcand server that
+    /// has not answered an echo): a frame's age cannot be checked.
+    Unverified,
+    /// The transport cannot take back a frame its peer has not read yet (a
+    /// TCP server that stops reading after its last answer still reads the
+    /// frame when it resumes), and active frames were not allowed on it.
+    Refused,
 }
 
 /// Outcome of a send that did not fail.
@@ -142,6 +162,12 @@ pub trait Sink: Send {
     }
     /// Ask the peer for a sign of life ahead of the deadline.
     fn probe(&mut self) {}
+    /// Whether the age rule holds for the next frame (asked after
+    /// [`Sink::prepare`]); anything but [`Assurance::Holds`] makes the
+    /// bridge send a safe frame instead of an active one.
+    fn assurance(&self) -> Assurance {
+        Assurance::Holds
+    }
     /// `prepare` and `write` in one call (tests and tools).
     fn send(&mut self, frame: &CanFrame) -> Result<Outcome> {
         let r = self.prepare()?;
@@ -177,14 +203,26 @@ pub struct Opened {
     pub health: Arc<Health>,
 }
 
-/// Open the transport a channel string names. `bitrate` is the CAN bit rate
-/// requested from SLCAN adapters.
-pub fn open(spec: &ChannelSpec, bitrate: u32) -> Result<Opened> {
+/// How a transport is opened, besides its channel string.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct OpenOptions {
+    /// CAN bit rate requested from SLCAN adapters.
+    pub bitrate: u32,
+    /// Allow active frames over socketcand, accepting its residual (a
+    /// server that stops reading right after answering its probe reads that
+    /// one frame when it resumes; `docs/bus-safety.md`).
+    pub socketcand_active: bool,
+}
+
+/// Open the transport a channel string names.
+pub fn open(spec: &ChannelSpec, opts: OpenOptions) -> Result<Opened> {
     match spec {
         ChannelSpec::SocketCan { iface } => socketcan::open(iface),
-        ChannelSpec::Slcan { path, baud } => slcan_stream::open_serial(path, *baud, bitrate),
+        ChannelSpec::Slcan { path, baud } => slcan_stream::open_serial(path, *baud, opts.bitrate),
         ChannelSpec::SlcanPty => slcan_stream::open_pty(),
-        ChannelSpec::Socketcand { host, port, bus } => socketcand::open(host, *port, bus),
+        ChannelSpec::Socketcand { host, port, bus } => {
+            socketcand::open(host, *port, bus, opts.socketcand_active)
+        }
     }
 }
 

@@ -9,13 +9,22 @@
 //!
 //! **Age rule, pty.** Before each frame, bytes the peer has not read since
 //! the last tick (`FIONREAD` on the bridge's own slave handle; `TIOCOUTQ` on
-//! a Linux pty master always reads 0) are flushed (`tcflush(TCIFLUSH)` on
-//! the slave), so the peer never reads a frame older than one period
-//! (`test_f1_no_stale_frame_reaches_a_pty_peer_after_a_stall`). Only whole
-//! lines are flushed: the bridge keeps the offsets of the lines it wrote, and
-//! while the peer is part-way through one (it reads byte by byte, as
-//! python-can's slcan does) nothing is flushed that tick, and no new frame is
-//! queued behind older lines (`unread_lines`). Replies to
+//! a Linux pty master always reads 0) are discarded by reading them from that
+//! handle (the line discipline serialises readers, so the bridge knows to the
+//! byte where the peer stopped; `tcflush` races a peer that reads between the
+//! count and the flush), so the peer never reads a frame older than one period
+//! (`test_f1_no_stale_frame_reaches_a_pty_peer_after_a_stall`). A peer that
+//! stopped part-way through a line (it reads byte by byte, as python-can's
+//! slcan does, and can be preempted between two bytes) is no exception: the
+//! rest of that line is flushed with everything behind it, and the line is
+//! ended by its own remainder with its last data digit changed, so the peer
+//! parses a frame that fails its CRC (python-can parses it without an
+//! error) instead of gluing the head to the next line or completing a
+//! frame a stall old (`test_tx_stall_*` in `tests/can_bridge`). The bridge
+//! keeps the lines it wrote since the last flush to know where the peer is
+//! (`Ledger`). Residual: a peer that stopped after a frame's last data digit
+//! and before its CR completes that frame when it resumes (only the CR is
+//! left to send). Replies to
 //! the peer's commands are written only while its unread input is below
 //! [`REPLY_ROOM`]; a peer flooding commands without reading the replies
 //! costs dropped replies (counted), never a wait of the transmit thread.
@@ -47,6 +56,15 @@ use std::time::{Duration, Instant};
 /// written (a line is at most 27 bytes; the pty's line discipline holds 4096).
 pub const REPLY_ROOM: usize = 512;
 
+/// Longest wait for the pty peer to finish a read in progress before its
+/// unread bytes are taken ([`Port::take_unread`]).
+const TAKE_BUDGET: Duration = Duration::from_micros(500);
+
+/// How long the peer is watched for progress before its unread bytes are
+/// taken ([`Port::settle`]), at most, and the step between two looks.
+const SETTLE_BUDGET: Duration = Duration::from_millis(2);
+const SETTLE_STEP: Duration = Duration::from_micros(100);
+
 /// Longest wait at start for each handshake reply of a serial adapter.
 pub const HANDSHAKE: Duration = Duration::from_millis(500);
 
@@ -64,8 +82,9 @@ struct Port {
     /// lets it have the lock (drops a reply) rather than take it again, so a
     /// peer flooding commands cannot starve the tick by lock convoy.
     tx_waiting: AtomicBool,
-    /// Where the lines written since the last flush end (pty age rule: a
-    /// flush may only discard whole lines). Locked only under `write_lock`.
+    /// The lines written since the last flush (pty age rule: where the peer
+    /// is, and how to end a line it is part-way through). Locked only under
+    /// `write_lock`.
     ledger: Mutex<Ledger>,
     /// For a pty: our own handle on the slave, so the master never sees a
     /// hang-up while no peer is connected; also how we see unread output.
@@ -73,13 +92,52 @@ struct Port {
     what: String,
 }
 
-/// Byte offsets of the lines written to the pty since the last flush.
+/// Longest line the bridge writes (a leading CR, `T`, 8 digits of ID, the
+/// DLC, 16 digits of data, CR: 28 bytes).
+const MAX_LINE: usize = 40;
+
+/// One line written to the pty.
+#[derive(Clone, Copy, Debug)]
+struct Line {
+    bytes: [u8; MAX_LINE],
+    len: usize,
+    /// Where it ends, counted from the last flush.
+    end: u64,
+    /// A CAN frame (`t`/`T`), whose remainder is made to fail its CRC when
+    /// the line is cut.
+    frame: bool,
+    /// It continues a line the peer had begun before a flush: the peer is
+    /// inside a line at its start.
+    continues: bool,
+}
+
+impl Line {
+    fn new(bytes: &[u8], end: u64, continues: bool) -> Self {
+        let len = bytes.len().min(MAX_LINE);
+        let mut b = [0u8; MAX_LINE];
+        b[..len].copy_from_slice(&bytes[..len]);
+        let first = bytes.iter().find(|&&c| c != b'\r').copied();
+        Line {
+            bytes: b,
+            len,
+            end,
+            frame: matches!(first, Some(b't' | b'T')),
+            continues,
+        }
+    }
+
+    fn bytes(&self) -> &[u8] {
+        &self.bytes[..self.len]
+    }
+}
+
+/// The lines written to the pty since the last flush.
 #[derive(Debug, Default)]
 struct Ledger {
     /// Bytes written since the last flush.
     total: u64,
-    /// End offsets of the lines the peer may not have read completely yet.
-    ends: VecDeque<u64>,
+    /// The lines the peer may not have read completely yet.
+    lines: VecDeque<Line>,
     /// The end of the last line the peer has read completely.
     done: u64,
 }
@@ -91,10 +149,26 @@ enum Unread {
     Nothing,
     /// Only whole lines: flushing them cuts none.
     WholeLines,
-    /// The peer has read part of a line and the rest of it is queued, with
-    /// (`true`) or without (`false`) further lines behind it. Flushing now
-    /// would cut that line, and the peer would glue its head to the next one.
-    MidLine(bool),
+    /// The peer has read part of a line (or the head of one cut by an
+    /// earlier flush): the bytes that end that line harmlessly once
+    /// everything unread is flushed.
+    MidLine(Vec<u8>),
+}
+
+/// The rest of a cut line as it is sent to end the peer's part of it: for a
+/// frame's first cut, with its last data digit changed (the CRC then fails,
+/// and the hex stays valid so a lenient parser reads a frame, not garbage);
+/// a remainder that is only the CR is left as it is (the residual).
+fn ending(rest: &[u8], corrupt: bool) -> Vec<u8> {
+    let mut out = rest.to_vec();
+    if corrupt {
+        let term = out.iter().rposition(|&c| c != b'\r' && c != 0x07);
+        if let Some(i) = term.filter(|&i| out[i].is_ascii_hexdigit()) {
+            let v = (out[i] as char).to_digit(16).unwrap_or(0) ^ 0x8;
+            out[i] = b"0123456789ABCDEF"[v as usize];
+        }
+    }
+    out
 }
 
 fn cut() -> io::Error {
@@ -108,13 +182,19 @@ impl Port {
     /// One non-blocking write of a whole line: `Ok(true)` written,
     /// `Ok(false)` nothing written (full), `Err` on a partial write.
     fn write_once(&self, bytes: &[u8]) -> io::Result<bool> {
+        self.write_line(bytes, false)
+    }
+
+    /// [`Port::write_once`], recording the line in the ledger (`continues`:
+    /// it ends a line the peer had begun before a flush).
+    fn write_line(&self, bytes: &[u8], continues: bool) -> io::Result<bool> {
         loop {
             match self.fd.write(bytes) {
                 Ok(n) if n == bytes.len() => {
                     let mut l = self.ledger.lock().unwrap_or_else(|e| e.into_inner());
                     l.total += n as u64;
                     let end = l.total;
-                    l.ends.push_back(end);
+                    l.lines.push_back(Line::new(bytes, end, continues));
                     return Ok(true);
                 }
                 Ok(_) => return Err(cut()),
@@ -156,28 +236,115 @@ impl Port {
         }
     }
 
-    /// What the pty peer has not read, in whole lines or not (call under the
-    /// write lock). The peer has consumed `total - unread` bytes; when that is
-    /// the end of a line, the unread bytes are whole lines.
-    fn unread_lines(&self) -> Unread {
+    /// Take what the pty peer has not read by reading it ourselves from the
+    /// slave (call under the write lock): the line discipline serialises
+    /// readers, so the bytes taken are exactly the tail the peer has not
+    /// read, and the peer cannot read a byte between our count and our
+    /// discard (as it can between `FIONREAD` and `tcflush`, which glued a
+    /// byte of a flushed line to the next one). Reading until the queue is
+    /// empty also takes bytes still on their way from the master: a read
+    /// that finds nothing waits for the pty's pending buffer work first, so
+    /// a line written a period ago that a starved kernel worker has not yet
+    /// delivered (`FIONREAD` 0) is taken too, never left to arrive late.
+    /// `None` if the peer holds the read lock for longer than
+    /// [`TAKE_BUDGET`] (a read waiting for more bytes than are queued).
+    fn take_unread(&self) -> Option<u64> {
+        let keeper = self.slave_keeper.as_ref()?;
+        let end = Instant::now() + TAKE_BUDGET;
+        let mut taken = 0u64;
+        let mut buf = [0u8; 4096];
+        loop {
+            match keeper.read(&mut buf) {
+                Ok(0) => return Some(taken),
+                Ok(n) => taken += n as u64,
+                Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                    // nothing left, or the peer is inside a read right now
+                    if self.unread_by_peer().unwrap_or(0) == 0 {
+                        return Some(taken);
+                    }
+                    if Instant::now() >= end {
+                        return None;
+                    }
+                    std::thread::sleep(Duration::from_micros(20));
+                }
+                Err(_) => return None,
+            }
+        }
+    }
+
+    /// Wait (at most [`SETTLE_BUDGET`]) while the peer is visibly reading:
+    /// a peer part-way through a line it is reading now finishes it, and
+    /// what is discarded is what a stopped peer left.
+    fn settle(&self, mut n: usize) {
+        let end = Instant::now() + SETTLE_BUDGET;
+        while n > 0 && Instant::now() < end {
+            std::thread::sleep(SETTLE_STEP);
+            let m = self.unread_by_peer().unwrap_or(0);
+            if m >= n {
+                break;
+            }
+            n = m;
+        }
+    }
+
+    /// Discard what the pty peer has not read (call under the write lock)
+    /// and say where that left the peer: at a line's end, or inside a line
+    /// (with the bytes that end it harmlessly). The peer has consumed
+    /// `total - taken` bytes of what was written since the last discard.
+    fn discard_unread(&self) -> Unread {
         let Some(n) = self.unread_by_peer() else {
             return Unread::Nothing;
         };
-        let mut l = self.ledger.lock().unwrap_or_else(|e| e.into_inner());
-        if n == 0 {
-            *l = Ledger::default();
+        if n > 0 {
+            self.settle(n);
+        }
+        let unread = match self.take_unread() {
+            Some(m) => m,
+            None => {
+                let m = self.unread_by_peer().unwrap_or(n) as u64;
+                if let Some(k) = &self.slave_keeper {
+                    // SAFETY: k is an open tty descriptor.
+                    unsafe { libc::tcflush(k.raw(), libc::TCIFLUSH) };
+                }
+                m
+            }
+        };
+        if unread == 0 {
+            *self.ledger.lock().unwrap_or_else(|e| e.into_inner()) = Ledger::default();
             return Unread::Nothing;
         }
-        let consumed = l.total.saturating_sub(n as u64);
-        while let Some(&e) = l.ends.front().filter(|&&e| e <= consumed) {
+        let mut l = self.ledger.lock().unwrap_or_else(|e| e.into_inner());
+        let consumed = l.total.saturating_sub(unread);
+        while let Some(e) = l.lines.front().map(|x| x.end).filter(|&e| e <= consumed) {
             l.done = e;
-            l.ends.pop_front();
+            l.lines.pop_front();
         }
-        if consumed == l.done {
-            return Unread::WholeLines;
+        let start = l.done;
+        let out = match l.lines.front() {
+            None => Unread::WholeLines,
+            Some(front) if consumed == start && !front.continues => Unread::WholeLines,
+            Some(front) => {
+                let into = usize::try_from(consumed - start).unwrap_or(usize::MAX);
+                let rest = front.bytes().get(into..).unwrap_or(&[]);
+                Unread::MidLine(ending(rest, front.frame && !front.continues))
+            }
+        };
+        *l = Ledger::default();
+        drop(l);
+        // Something to read at once: a reader that saw the discarded bytes
+        // ready (select) and reads them a moment later must not find the
+        // queue empty (pyserial raises on an empty read after a ready
+        // select). An empty line at a line's end; the ending inside one.
+        match &out {
+            Unread::MidLine(end) => {
+                let _ = self.write_line(end, true);
+            }
+            _ => {
+                let _ = self.write_line(b"\r", false);
+            }
         }
-        let rest = l.ends.front().map_or(0, |&e| e - consumed);
-        Unread::MidLine(n as u64 > rest)
+        out
     }
 
     /// Wait (at most `budget`) until the peer has read everything written to
@@ -321,21 +488,18 @@ impl Sink for SlcanSink {
                 }
                 let port = self.port.clone();
                 let _g = port.lock_tx();
-                Ok(match self.port.unread_lines() {
+                Ok(match self.port.discard_unread() {
                     Unread::Nothing => Ready::OPEN,
-                    Unread::WholeLines => {
-                        self.port.flush_unread();
-                        Ready {
-                            gate: Gate::Open,
-                            flushed: 1,
-                        }
-                    }
-                    // the peer is reading a line now: never cut it; the new
-                    // line queues behind it, unless older lines wait there too
-                    Unread::MidLine(false) => Ready::OPEN,
-                    Unread::MidLine(true) => Ready {
-                        gate: Gate::Busy,
-                        flushed: 0,
+                    Unread::WholeLines => Ready {
+                        gate: Gate::Open,
+                        flushed: 1,
+                    },
+                    // The peer stopped inside a line a period ago: what it has
+                    // not read goes, and the line ends with a remainder that
+                    // fails its CRC, so the new frame starts a line of its own.
+                    Unread::MidLine(_) => Ready {
+                        gate: Gate::Open,
+                        flushed: 1,
                     },
                 })
             }
@@ -876,7 +1040,8 @@ mod tests {
         std::thread::sleep(Duration::from_millis(5));
         let o = sink.send(&b).unwrap();
         assert_eq!((o.written, o.flushed), (Written::Yes, 1));
-        assert_eq!(read_until(&peer, 8), b"t101102\r");
+        // an empty line in place of what was discarded, then the new frame
+        assert_eq!(read_until(&peer, 9), b"\rt101102\r");
     }
 
     /// Read exactly `n` bytes (or what arrives within about 2 s), never more.
@@ -897,7 +1062,41 @@ mod tests {
     }
 
     #[test]
-    fn a_line_the_peer_is_part_way_through_is_never_cut() {
+    fn a_line_the_peer_stopped_inside_ends_failing_its_crc() {
+        // "t101101\r": the peer reads k bytes and stops for two ticks; then
+        // it reads the rest of that line, ended by the bridge with its last
+        // data digit changed (1 -> 9: the CRC fails), and only the newest
+        // frame after it, never the frame it stopped in nor the one between.
+        let a = CanFrame::new(0x101, false, &[1]).unwrap();
+        let b = CanFrame::new(0x101, false, &[2]).unwrap();
+        let c = CanFrame::new(0x101, false, &[3]).unwrap();
+        let line = b"t101101\r";
+        for k in 1..line.len() {
+            let (mut sink, _source, peer) = opened_by_a_peer();
+            assert_eq!(read_until(&peer, 1), b"\r");
+            assert_eq!(sink.send(&a).unwrap(), Outcome::YES);
+            std::thread::sleep(Duration::from_millis(5));
+            assert_eq!(read_n(&peer, k), &line[..k]);
+            for f in [&b, &c] {
+                let o = sink.send(f).unwrap();
+                assert_eq!((o.written, o.flushed), (Written::Yes, 1), "k = {k}");
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            let ended: &[u8] = if k + 1 < line.len() {
+                b"t101109\r"
+            } else {
+                line
+            };
+            let want = [&ended[k..], b"t101103\r"].concat();
+            assert_eq!(read_n(&peer, want.len()), want, "k = {k}");
+            // the peer had the whole of it: the next frame goes out alone
+            assert_eq!(sink.send(&a).unwrap(), Outcome::YES);
+            assert_eq!(read_until(&peer, 8), line);
+        }
+    }
+
+    #[test]
+    fn a_peer_that_stops_again_inside_the_ending_gets_the_rest_of_it() {
         let (mut sink, _source, peer) = opened_by_a_peer();
         assert_eq!(read_until(&peer, 1), b"\r");
         let a = CanFrame::new(0x101, false, &[1]).unwrap();
@@ -905,17 +1104,21 @@ mod tests {
         let c = CanFrame::new(0x101, false, &[3]).unwrap();
         assert_eq!(sink.send(&a).unwrap(), Outcome::YES);
         std::thread::sleep(Duration::from_millis(5));
-        assert_eq!(read_n(&peer, 3), b"t10"); // the peer is inside line a
-        let o = sink.send(&b).unwrap(); // only the rest of a is queued: b goes behind it
-        assert_eq!((o.written, o.flushed), (Written::Yes, 0));
+        assert_eq!(read_n(&peer, 3), b"t10");
+        assert_eq!(sink.send(&b).unwrap().flushed, 1);
         std::thread::sleep(Duration::from_millis(5));
-        // rest of a and b queued behind it: c is neither glued nor may a be cut
-        let o = sink.send(&c).unwrap();
-        assert_eq!((o.written, o.flushed), (Written::Dropped, 0));
-        assert_eq!(read_n(&peer, 13), b"1101\rt101102\r");
-        // the peer read everything to a line's end: the next frame goes out alone
-        assert_eq!(sink.send(&c).unwrap(), Outcome::YES);
-        assert_eq!(read_until(&peer, 8), b"t101103\r");
+        assert_eq!(read_n(&peer, 2), b"11"); // into the ending "1109\r"
+        assert_eq!(sink.send(&c).unwrap().flushed, 1);
+        std::thread::sleep(Duration::from_millis(5));
+        assert_eq!(read_n(&peer, 11), b"09\rt101103\r");
+    }
+
+    #[test]
+    fn the_ending_keeps_hex_and_changes_the_last_data_digit() {
+        assert_eq!(ending(b"018AB\r", true), b"018A3\r");
+        assert_eq!(ending(b"0\r", true), b"8\r");
+        assert_eq!(ending(b"\r", true), b"\r");
+        assert_eq!(ending(b"V1013\r", false), b"V1013\r");
     }
 
     #[test]

@@ -15,12 +15,21 @@
 //! one that stops within the probe's lead before a deadline can still find
 //! that one frame when it resumes.
 //!
+//! **Active frames.** Because of that residual, and because TCP cannot take
+//! a frame back once the server's kernel holds it (an abortive close does
+//! not help: Linux hands queued bytes to the reader before the reset), the
+//! sink allows active frames only when the bridge was told to accept the
+//! residual (`socketcand_active`, [`Assurance::Refused`] otherwise) and only
+//! while the server answers echoes (a server that never has is
+//! [`Assurance::Unverified`]); otherwise every frame is a safe one
+//! (`test_tx_socketcand_*` in `tests/can_bridge`).
+//!
 //! **Reconnect.** A closed or broken connection marks the link down at once
 //! (the bridge reports the transport lost on its next tick); the receive
 //! thread reconnects with a backoff of 100 ms doubling to [`MAX_BACKOFF`]
 //! (`test_f4_a_restarted_socketcand_server_is_reconnected`).
 
-use super::{out_queue, Gate, Health, Opened, Ready, RxItem, Sink, Source, Written};
+use super::{out_queue, Assurance, Gate, Health, Opened, Ready, RxItem, Sink, Source, Written};
 use crate::error::{clip, Error, Result};
 use crate::frame::CanFrame;
 use crate::scheduler::monotonic_ns;
@@ -273,6 +282,8 @@ struct TcpSink {
     writer: MessageWriter,
     generation: u64,
     held: u32,
+    /// Active frames allowed (`socketcand_active`).
+    active: bool,
 }
 
 impl TcpSink {
@@ -397,6 +408,16 @@ impl Sink for TcpSink {
         };
         if let Ok(Some(stream)) = self.stream(&mut guard) {
             let _ = link.send_with_echo(&mut self.writer, stream, b"< echo >");
+        }
+    }
+
+    fn assurance(&self) -> Assurance {
+        if !self.link.echo_known.load(Ordering::Acquire) {
+            Assurance::Unverified
+        } else if !self.active {
+            Assurance::Refused
+        } else {
+            Assurance::Holds
         }
     }
 
@@ -636,8 +657,9 @@ fn connect(host: &str, port: u16, bus: &str, budget: Duration) -> Result<Connect
 }
 
 /// Connect to `host:port`, open `bus` in raw mode (refused at start if that
-/// fails within the handshake timeout).
-pub fn open(host: &str, port: u16, bus: &str) -> Result<Opened> {
+/// fails within the handshake timeout). `active`: allow active frames (see
+/// the module's documentation).
+pub fn open(host: &str, port: u16, bus: &str, active: bool) -> Result<Opened> {
     let (stream, dec, backlog) = connect(host, port, bus, HANDSHAKE_TIMEOUT)?;
     let what = format!("socketcand {}:{port}/{}", clip(host), clip(bus));
     let rx = stream
@@ -664,6 +686,7 @@ pub fn open(host: &str, port: u16, bus: &str) -> Result<Opened> {
             writer: MessageWriter::default(),
             generation: 0,
             held: 0,
+            active,
         }),
         source: Box::new(TcpSource {
             link,
@@ -716,7 +739,7 @@ mod tests {
             mut sink,
             mut source,
             ..
-        } = open("127.0.0.1", port, "can0").unwrap();
+        } = open("127.0.0.1", port, "can0", true).unwrap();
         let mut frames = vec![];
         for _ in 0..100 {
             if let Some(RxItem::Frame(f)) = source.recv(20).unwrap() {
@@ -843,6 +866,7 @@ mod tests {
             writer: MessageWriter::default(),
             generation: 0,
             held: 0,
+            active: true,
         };
         // The server does not read: the buffers fill, sends start failing.
         let (mut ok, mut failed) = (0usize, 0usize);
@@ -897,7 +921,7 @@ mod tests {
             let _ = s.read(&mut b).unwrap();
             s.write_all(b"< error could not open bus >").unwrap();
         });
-        let e = open("127.0.0.1", port, "nope").err().unwrap();
+        let e = open("127.0.0.1", port, "nope", false).err().unwrap();
         assert!(e.to_string().contains("could not open bus"), "{e}");
         server.join().unwrap();
     }
