@@ -43,6 +43,7 @@ from ..vehicle.params import CONTROL_DT
 from .ticklog import (
     BRIDGE_LOG,
     JOURNAL_FILE,
+    LOG_LOSS_COUNTS,
     MODES,
     RUN_FILE,
     SKIP_KINDS,
@@ -151,9 +152,10 @@ def check_run(log_dir: Path) -> CheckedRun:
     if "ticks" in meta:  # a run killed before run.json's first rewrite counted nothing
         _check_counts(meta, cols, complete, log_dir, source)
     bridge = meta.get("bridge", {})
-    lost = bridge.get("log_dropped", 0) + bridge.get("log_errors", 0)
+    # lines the log left out (dropped, failed, or suppressed by its flood and
+    # size bounds) mean its frames no longer line up with the bridge's count
+    lost = sum(bridge.get(k, 0) for k in LOG_LOSS_COUNTS)
     if lost:
-        # the log's frames no longer line up with the bridge's count
         checked, unchecked = 0, int((cols["bridge_tx_frames"] > 0).sum())
         notes.append(f"the bridge's log lost {lost} frames: framed_* not cross-checked against it")
     else:

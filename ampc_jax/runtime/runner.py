@@ -594,4 +594,7 @@ _BRIDGE_STATS = (
     "transport_losses",
     "log_dropped",
     "log_errors",
+    "log_suppressed",
+    "last_log_error",
+    "tx_safe_only",
 )

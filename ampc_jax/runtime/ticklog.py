@@ -42,6 +42,7 @@ __all__ = [
     "COLUMNS",
     "JOURNAL_FILE",
     "LOG_FORMAT",
+    "LOG_LOSS_COUNTS",
     "MODES",
     "RUN_FILE",
     "SKIP_KINDS",
@@ -73,6 +74,10 @@ STATES = ("running", "finished", "stopped", "error")
 """``run.json["state"]``: still running (or killed), ran its duration, stopped by a
 signal (SIGTERM, SIGINT), ended by an error (``run.json["error"]`` says which)."""
 SKIP_KINDS = ("late", "state", "step")
+LOG_LOSS_COUNTS = ("log_dropped", "log_errors", "log_suppressed")
+"""The bridge's counts of candump lines its log left out (dropped behind, failed
+to write, suppressed by its flood and size bounds): any of them means the log
+no longer holds every transmitted frame."""
 """Why a tick sent nothing: its bridge deadline had passed, no usable state, a step
 that may not be sent (the row's ``reason`` says more)."""
 MODES = ("active", "hold", "safe", "fault")
@@ -367,8 +372,10 @@ def check_meta(meta: dict[str, Any], what: str, *, digest: bool = True) -> dict[
             lambda x: (
                 isinstance(x, dict)
                 and all(_is_int(x.get(k)) and x[k] >= 0 for k in ("log_dropped", "log_errors"))
+                and all(_is_int(x[k]) and x[k] >= 0 for k in LOG_LOSS_COUNTS[2:] if k in x)
             ),
-            "the bridge's statistics with counts 'log_dropped' and 'log_errors'",
+            "the bridge's statistics with counts 'log_dropped' and 'log_errors'"
+            " (and 'log_suppressed' a count where given)",
         )
     if "pid" in meta:
         need("pid", lambda x: _is_int(x) and x > 0, "a process id")
