@@ -141,3 +141,66 @@ def test_one_concept_per_module_stays_small():
     """No module of more than about 700 lines (the flat modules were up to 1,400)."""
     big = {m: n for m, p in MODULES.items() if (n := len(p.read_text().splitlines())) > 700}
     assert not big, big
+
+
+def _formulation_name_uses(tree: ast.AST, names: set[str]) -> list[tuple[int, str]]:
+    """(line, name) where a formulation's name is compared, listed (two or more
+    names in one tuple, list or set) or a dict key: a branch or a list kept
+    outside the registry."""
+
+    def strings(node: ast.AST) -> list[str]:
+        if isinstance(node, ast.Constant) and isinstance(node.value, str):
+            return [node.value]
+        if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+            return [s for e in node.elts for s in strings(e)]
+        return []
+
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Compare):
+            found = [s for e in (node.left, *node.comparators) for s in strings(e) if s in names]
+        elif isinstance(node, ast.Dict):
+            found = [s for k in node.keys if k is not None for s in strings(k) if s in names]
+        elif isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+            listed = [s for s in strings(node) if s in names]
+            found = listed if len(listed) > 1 else []
+        elif isinstance(node, ast.match_case):
+            found = [s for s in strings(getattr(node.pattern, "value", None)) if s in names]
+        else:
+            found = []
+        out.extend((node.lineno if hasattr(node, "lineno") else 0, s) for s in found)
+    return out
+
+
+def test_no_module_outside_formulations_branches_on_a_formulation_name():
+    """What a formulation is comes from its declared info, through the registry
+    (``formulation_info``, ``formulation_names``): no module outside
+    ``formulations/`` compares a formulation's name or keeps a list of them."""
+    from ampc_jax.formulations import FORMULATIONS
+
+    names = set(FORMULATIONS)
+    bad = [
+        f"{m}:{line} {name!r}"
+        for m, p in MODULES.items()
+        if not m.startswith("ampc_jax.formulations")
+        for line, name in _formulation_name_uses(ast.parse(p.read_text()), names)
+    ]
+    assert not bad, bad
+
+
+def test_the_formulation_name_check_finds_branches_and_lists():
+    src = (
+        "if args.formulation == 'integrated': pass\n"
+        "BATCH = {'local_explicit': 'riccati'}\n"
+        "CONSENSUS = ('fully_distributed', 'virtual_center')\n"
+        "ok = formulation('local_explicit', T)\n"
+    )
+    found = _formulation_name_uses(
+        ast.parse(src), {"integrated", "local_explicit", "fully_distributed", "virtual_center"}
+    )
+    assert sorted(found) == [
+        (1, "integrated"),
+        (2, "local_explicit"),
+        (3, "fully_distributed"),
+        (3, "virtual_center"),
+    ]

@@ -231,7 +231,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         return fail(problem)
     print(_header(args.scenario, cfg))
     out = Path(args.out)
-    timing = cfg.formulation not in ("integrated", "none") and not args.no_timing and cfg.shadow
+    decomposed = cfg.mpc and cfg.formulation_info.decomposed  # r_time: against the integrated
+    timing = decomposed and not args.no_timing and cfg.shadow
     m, mb, figs = _run(
         spec,
         cfg,
@@ -265,7 +266,7 @@ def _parse_floats(flag: str, text: str | None) -> float | tuple[float, ...] | No
 def _header(scenario: str, cfg: Any) -> str:
     """The first line printed: the scenario and the solver settings it runs (the
     example's ``solver_defaults`` where no flag or file gave one)."""
-    if cfg.formulation == "none":
+    if not cfg.mpc:
         return f"ampc simulate: {scenario}, no MPC"
     o = cfg.solver_options()
     rs = o["rho_scale"]
@@ -370,7 +371,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def add_simulate_commands(sub: Any) -> None:
     """Register ``ampc simulate`` and ``ampc demo`` on the ``ampc`` sub-parsers."""
-    from ..closed_loop import FORMULATIONS
+    from ..closed_loop import loop_formulations
+    from ..formulations import DEFAULT_FORMULATION
     from ..vehicle import SCENARIOS
 
     p = sub.add_parser(
@@ -382,8 +384,8 @@ def add_simulate_commands(sub: Any) -> None:
     p.add_argument("scenario", help="the manoeuvre: " + ", ".join(sorted(SCENARIOS)))
     p.add_argument(
         "--formulation",
-        choices=FORMULATIONS,
-        default="local_explicit",
+        choices=loop_formulations(),
+        default=DEFAULT_FORMULATION,
         help="the controller: Local Explicit (the paper's Formulation 3), Fully "
         "Distributed (1), Virtual Center Node (2), the integrated MPC, or none (the "
         "driver alone) (default: local_explicit)",

@@ -192,7 +192,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 def add_sweep_command(sub: Any) -> None:
     """Register ``ampc sweep``."""
-    from ..formulations import FORMULATIONS
+    from ..formulations import DEFAULT_FORMULATION, formulation_names
 
     p = sub.add_parser(
         "sweep",
@@ -225,8 +225,8 @@ def add_sweep_command(sub: Any) -> None:
     )
     p.add_argument(
         "--formulation",
-        default="local_explicit",
-        choices=sorted(FORMULATIONS),
+        default=DEFAULT_FORMULATION,
+        choices=sorted(formulation_names()),
         help="formulation (default: local_explicit)",
     )
     p.add_argument("--seed", type=int, default=0, help="the family's seed (default: 0)")

@@ -192,8 +192,11 @@ class ConsensusADMM(ADMMSolver):
 
     #: Formulation 2 (the input weights in the global step) when True.
     center = False
-    #: the paper's name of the formulation, for messages.
-    title = "consensus"
+
+    @property
+    def title(self) -> str:
+        """The paper's name of the formulation, for messages (``info.title``)."""
+        return "consensus ADMM" if self.info is None else self.info.title
 
     def __post_init__(self) -> None:
         for name in ("max_iter", "inner_iterations", "rho_iterations"):

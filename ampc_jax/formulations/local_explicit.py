@@ -63,7 +63,7 @@ import numpy as np
 
 from ..admm import stopping as stop
 from ..admm.acceleration import anderson_memory
-from ..admm.core import ADMMSolver
+from ..admm.core import ADMMSolver, FormulationInfo
 from ..admm.costs import padded_costs
 from ..admm.kkt import KKT, KKT_SOLVES, select_kkt
 from ..admm.layout import padded_layout
@@ -187,6 +187,19 @@ class LocalExplicit(ADMMSolver):
     and jittable; ``jax.jit(solver.solve)`` compiles one control step, which
     serves every :class:`SolverParams` without recompiling.
     """
+
+    info = FormulationInfo(
+        name="local_explicit",
+        title="Local Explicit (Formulation 3)",
+        label="Local Explicit",
+        rho="objective",
+        rho_basis="opt_ro",
+        decomposed=True,
+        batch_kkt="riccati",
+        closed_loop=True,
+        learned_start=True,
+        state_file=True,
+    )
 
     topology: Topology
     max_iter: int = 500

@@ -32,6 +32,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..formulations.registry import DEFAULT_FORMULATION
+
 __all__ = [
     "FAMILIES",
     "Family",
@@ -210,7 +212,7 @@ def _vehicle_steps(
     start: int,
     *,
     horizon: int | None = None,
-    formulation: str = "local_explicit",
+    formulation: str = DEFAULT_FORMULATION,
     groups: str = "paper",
     ranges: Any = None,
     dtype: Any = None,

@@ -83,7 +83,6 @@ linearised at the current operating point (eq.CC_system, eq.VSC_system), which
 a vehicle leaves within seconds, and the condensed forms grow as N_p^3
 (:func:`~ampc_jax.problem.limits.condensed_bytes`)."""
 
-_FORMULATIONS = ("local_explicit", "fully_distributed", "virtual_center", "integrated", "none")
 _KEYS = (
     "format",
     "example",
@@ -227,9 +226,13 @@ def validate_params(doc: Any) -> TunedParams:
     ex = doc.get("example")
     if ex is not None and (not isinstance(ex, str) or not ex):
         raise ValueError(f"example: expected an example name or null, got {_show(ex)}")
-    form = doc.get("formulation", "local_explicit")
-    if form not in _FORMULATIONS:
-        raise ValueError(f"formulation: expected one of {list(_FORMULATIONS)}, got {_show(form)}")
+    from ..closed_loop.config import NO_MPC
+    from ..formulations import DEFAULT_FORMULATION, formulation_names
+
+    form = doc.get("formulation", DEFAULT_FORMULATION)
+    names = [*formulation_names(), NO_MPC]
+    if form not in names:
+        raise ValueError(f"formulation: expected one of {names}, got {_show(form)}")
     solver = doc.get("solver", {})
     if solver is None:
         solver = {}
@@ -461,11 +464,12 @@ def _apply_warm_start(config: Any, model: Any) -> Any:
     from dataclasses import replace
 
     from ..closed_loop.controller import controller_for
+    from ..formulations import formulation_names
 
-    if config.formulation != "local_explicit":
+    if not config.mpc or not config.formulation_info.learned_start:
         raise ValueError(
-            f"warm_start: the start network is for Local Explicit, not formulation "
-            f"{config.formulation!r}"
+            f"warm_start: the start network is for {' or '.join(formulation_names(learned_start=True))}, "
+            f"not formulation {config.formulation!r}"
         )
     try:
         out = replace(config, learned_start=model)

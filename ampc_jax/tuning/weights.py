@@ -352,7 +352,7 @@ def tune_weights(
             raise ValueError(f"{name}: expected a finite number >= 0, got {v!r}")
     if torque_limit is not None:
         _check_positive("torque_limit", torque_limit)
-    if config.formulation == "none":
+    if not config.mpc:
         raise ValueError("formulation: 'none' runs no MPC: no weights to tune")
     all_fields = weight_fields(config.settings)
     fields = all_fields if fields is None else tuple(fields)
