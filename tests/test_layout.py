@@ -204,3 +204,19 @@ def test_the_formulation_name_check_finds_branches_and_lists():
         (3, "fully_distributed"),
         (3, "virtual_center"),
     ]
+
+
+def test_no_class_forwards_attributes_with_getattr():
+    """A wrapper (a solver around a formulation, ``LearnedStart``) declares what it
+    offers: no class defines ``__getattr__`` or ``__getattribute__`` to forward
+    any attribute to what it wraps (what the wrapper needs goes into the core
+    protocol, ``ADMMSolver``)."""
+    bad = [
+        f"{m}:{node.lineno} {node.name}.{f.name}"
+        for m, p in MODULES.items()
+        for node in ast.walk(ast.parse(p.read_text()))
+        if isinstance(node, ast.ClassDef)
+        for f in node.body
+        if isinstance(f, ast.FunctionDef) and f.name in ("__getattr__", "__getattribute__")
+    ]
+    assert not bad, bad

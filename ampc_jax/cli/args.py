@@ -142,7 +142,7 @@ def with_params_file(config: Any, path: str | None, keep: tuple[str, ...] = ()) 
     ValueError ``--params PATH: field: message`` on a bad file."""
     if path is None:
         return config
-    from ..tuning.params_file import apply_params, read_params
+    from ..io.params_file import apply_params, read_params
 
     try:
         return apply_params(config, read_params(path), keep=keep)

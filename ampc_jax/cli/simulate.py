@@ -282,7 +282,7 @@ def _header(scenario: str, cfg: Any) -> str:
 def _warn_tuned_for(path: str, cfg: Any, dtype: str) -> None:
     """One warning line on stderr when the file was tuned under other solver
     settings than ``cfg`` runs (its ``tuned_for``)."""
-    from ..tuning.params_file import read_params, tuned_for_warning
+    from ..io.params_file import read_params, tuned_for_warning
 
     running = {
         "formulation": cfg.formulation,
@@ -299,7 +299,7 @@ def _parse_settings(items: list[str], settings: Any, example: str | None = None)
     """``--set horizon=2 --set q_yrt=1e4`` -> fields of the example's settings, each
     within the tuned-parameters file's bounds (a factor 1e6 of the default, the
     horizon's 10 s of prediction)."""
-    from ..tuning.params_file import check_settings_bounds
+    from ..io.params_file import check_settings_bounds
 
     out: dict[str, Any] = {}
     for item in items:

@@ -127,7 +127,7 @@ def _params_file(path: str | None) -> tuple[tuple[float, ...] | None, float | No
     apply to a problem file."""
     if path is None:
         return None, None, None
-    from ..tuning.params_file import read_params
+    from ..io.params_file import read_params
 
     try:
         tuned = read_params(path)
@@ -219,7 +219,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
     )
     anderson = 0 if args.anderson is None else args.anderson
     if args.params is not None:
-        from ..tuning.params_file import read_params, tuned_for_warning
+        from ..io.params_file import read_params, tuned_for_warning
 
         running = {
             "formulation": args.formulation,

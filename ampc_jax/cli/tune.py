@@ -64,7 +64,7 @@ def _loss_figure(history: list[dict[str, Any]], path: Path, title: str) -> None:
 
 
 def _solver(args: argparse.Namespace, out: Path) -> int:
-    from ..tuning.params_file import write_params
+    from ..io.params_file import write_params
     from ..tuning.solver import evaluation_table, tune_solver
 
     try:
@@ -126,8 +126,8 @@ def _solver(args: argparse.Namespace, out: Path) -> int:
 
 
 def _weights(args: argparse.Namespace, out: Path) -> int:
+    from ..io.params_file import write_params
     from ..sweep.families import family
-    from ..tuning.params_file import write_params
 
     try:
         from ..tuning.weights import tune_weights
@@ -186,7 +186,7 @@ def _weights(args: argparse.Namespace, out: Path) -> int:
 
 
 def _warm_start(args: argparse.Namespace, out: Path) -> int:
-    from ..tuning.params_file import write_params
+    from ..io.params_file import write_params
     from ..tuning.warm_start import start_table, tune_warm_start
 
     try:

@@ -67,6 +67,7 @@ from ..admm.core import ADMMSolver, FormulationInfo
 from ..admm.costs import padded_costs
 from ..admm.kkt import KKT, KKT_SOLVES, select_kkt
 from ..admm.layout import padded_layout
+from ..admm.learned_start.multipliers import kkt_multipliers
 from ..admm.params import SolverParams, as_params
 from ..admm.rho import RHO_STEPS, RhoEstimates, eq_opt_ro_exact, eq_opt_ro_power, select_rho
 from ..admm.runners import check_iterations
@@ -329,6 +330,17 @@ class LocalExplicit(ADMMSolver):
             " (ADMMState is in the solver's padded layout; build one from "
             "per-objective arrays with LocalExplicit.state_of)",
         )
+
+    def start_from_inputs(
+        self, setup: LocalSetup, data: ProblemData, u: Any, like: ADMMState
+    ) -> ADMMState:
+        """``like`` with Z = max(0, bbar - A_in u) (the rows' slack at u) and the
+        multipliers that make ``u`` a fixed point
+        (:func:`~ampc_jax.admm.learned_start.kkt_multipliers`): a learned
+        ``"step"`` start from its predicted inputs."""
+        Z = jnp.maximum(data.bin - u @ data.Ain.T, 0.0)
+        gamma = kkt_multipliers(self.topology, setup.hessian, setup.E, setup.Ain, u, Z, data.bin)
+        return like._replace(Z=Z.astype(like.Z.dtype), gamma=gamma.astype(like.gamma.dtype))
 
     # -- per-objective views of the padded state ------------------------------------
     def local_inputs(self, state: ADMMState) -> tuple:
