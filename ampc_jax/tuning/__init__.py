@@ -1,6 +1,7 @@
 """Gradient tuning: the solver's speed (:mod:`.solver`), the objectives' weights
 through the differentiable closed loop (:mod:`.weights`) and a learned start
-(:mod:`.warm_start`). What they write, the tuned-parameters file, is configuration I/O
+(:mod:`.warm_start`), each through one training loop (:mod:`.fit`). What they
+write, the tuned-parameters file, is configuration I/O
 (:mod:`ampc_jax.io.params_file`); its names are re-exported here."""
 
 from __future__ import annotations
