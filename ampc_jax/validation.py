@@ -23,15 +23,19 @@ __all__ = [
     "check_non_negative",
     "check_positive",
     "check_relaxation",
+    "check_values",
     "is_number",
 ]
 
 
 def is_number(value: Any) -> bool:
-    """A real number: Python's or NumPy's, never a bool."""
-    return not isinstance(value, (bool, np.bool_)) and isinstance(
-        value, (int, float, np.integer, np.floating)
-    )
+    """A real number: Python's or NumPy's (a 0-d array of a real dtype too), never a bool."""
+    if isinstance(value, (bool, np.bool_)):
+        return False
+    if isinstance(value, (int, float, np.integer, np.floating)):
+        return True
+    kind = getattr(getattr(value, "dtype", None), "kind", None)
+    return getattr(value, "shape", None) == () and kind in ("i", "u", "f")
 
 
 def check_count(value: Any, name: str = "iterations", low: int = 1) -> int:
@@ -71,6 +75,22 @@ def check_relaxation(value: Any, name: str = "relaxation") -> float:
     if not is_number(value) or not 0.0 < float(value) < 2.0:
         raise ValueError(f"{name}: expected a value in (0, 2), got {value!r}")
     return float(value)
+
+
+def check_values(value: Any, name: str, low: float, high: float, *, open_low: bool = True) -> None:
+    """Numbers (a scalar or an array, checked elementwise), finite, above ``low``
+    (or at it, ``open_low=False``) and below ``high`` (where finite)."""
+    try:
+        a = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected numbers, got {value!r:.80}") from None
+    if isinstance(value, bool) or a.dtype == bool:
+        raise ValueError(f"{name}: expected numbers, got {value!r}")
+    ok = np.isfinite(a) & (a < high) & ((a > low) if open_low else (a >= low))
+    if not np.all(ok):
+        side = ">" if open_low else ">="
+        top = f" and < {high:g}" if np.isfinite(high) else ""
+        raise ValueError(f"{name}: expected finite values {side} {low:g}{top}, got {value!r:.80}")
 
 
 def check_flag(value: Any, name: str) -> bool:

@@ -220,3 +220,90 @@ def test_no_class_forwards_attributes_with_getattr():
         if isinstance(f, ast.FunctionDef) and f.name in ("__getattr__", "__getattribute__")
     ]
     assert not bad, bad
+
+
+def test_no_library_module_imports_the_testing_helpers():
+    """``ampc_jax.testing`` (the peers the tests and benchmarks share) is imported
+    by tests and benchmarks only."""
+    for m, p in MODULES.items():
+        if m.startswith("ampc_jax.testing"):
+            continue
+        for target, _, _ in _imports(p):
+            assert not _resolve(target).startswith("ampc_jax.testing"), f"{m} imports {target}"
+
+
+ROOT = PKG.parent
+
+
+def _mentions_status(node: ast.AST) -> bool:
+    """``status``, ``x.status``, ``x["status"]``, ``int(x.status)``, ``np.asarray(x.status)``."""
+    if isinstance(node, ast.Name):
+        return "status" in node.id.lower() and node.id != "Status"
+    if isinstance(node, ast.Attribute):
+        return "status" in node.attr.lower() or _mentions_status(node.value)
+    if isinstance(node, ast.Subscript):
+        key = node.slice
+        named = (
+            isinstance(key, ast.Constant) and isinstance(key.value, str) and "status" in key.value
+        )
+        return named or _mentions_status(node.value)
+    if isinstance(node, ast.Call):
+        return any(_mentions_status(a) for a in node.args)
+    return False
+
+
+def _int_literal(node: ast.AST) -> bool:
+    """An integer literal, bare or wrapped (``np.int32(4)``)."""
+    if isinstance(node, ast.Constant):
+        return isinstance(node.value, int) and not isinstance(node.value, bool)
+    if isinstance(node, ast.UnaryOp):
+        return _int_literal(node.operand)
+    if isinstance(node, ast.Call) and len(node.args) == 1 and not node.keywords:
+        return _int_literal(node.args[0])
+    return False
+
+
+def _literal_status_codes(tree: ast.AST) -> list[int]:
+    """Lines where a status is compared with, or set to, a number instead of a
+    ``Status`` member."""
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Compare):
+            sides = [node.left, *node.comparators]
+            if any(_mentions_status(s) for s in sides) and any(_int_literal(s) for s in sides):
+                out.append(node.lineno)
+        elif isinstance(node, ast.keyword) and node.arg and "status" in node.arg:
+            if _int_literal(node.value):
+                out.append(node.value.lineno)
+    return sorted(out)
+
+
+# the runtime's own numbers (a failed tick's status, the tick journal's "no step"
+# mark) become Status members and a named constant with the runtime's next change
+_STATUS_PENDING = {"ampc_jax/runtime/runner.py", "ampc_jax/runtime/runcheck.py"}
+
+
+def test_no_literal_status_codes():
+    """A status is a ``results.Status`` member everywhere, in the package, its tests
+    and its benchmarks: never ``status == 0`` or ``status=np.int32(4)``."""
+    files = sorted(PKG.rglob("*.py")) + sorted((ROOT / "tests").rglob("*.py"))
+    files += sorted((ROOT / "bench").rglob("*.py"))
+    bad = [
+        f"{rel}:{line}"
+        for f in files
+        if (rel := str(f.relative_to(ROOT))) not in _STATUS_PENDING
+        for line in _literal_status_codes(ast.parse(f.read_text()))
+    ]
+    assert not bad, bad
+
+
+def test_the_status_check_finds_literals():
+    src = (
+        "assert int(res.status) == 2\n"
+        "ok = np.all(np.asarray(out.status) == 0)\n"
+        "conv = out['status'] == 0\n"
+        "r = report._replace(status=np.int32(4))\n"
+        "fine = res.status == Status.SOLVED\n"
+        "also = res.iterations == 3\n"
+    )
+    assert _literal_status_codes(ast.parse(src)) == [1, 2, 3, 4]

@@ -19,13 +19,14 @@ from typing import Any
 import numpy as np
 
 from .args import (
-    PARAMS_HELP,
+    add_output_flags,
+    add_params_flag,
+    add_solver_flags,
     arg_type,
     at_least_one,
     fail,
     flag_error,
     output_dir,
-    over_relaxation,
     positive_finite,
     progress_disabled,
     with_params_file,
@@ -426,12 +427,6 @@ def add_simulate_commands(sub: Any) -> None:
         help="eps_s of the stopping rule, squared, Nm^2 (default: 1)",
     )
     p.add_argument(
-        "--max-iter",
-        type=arg_type(at_least_one, int),
-        default=None,
-        help="the controller's iteration cap (default: 200)",
-    )
-    p.add_argument(
         "--rho-scale",
         default=None,
         metavar="S[,S]",
@@ -442,13 +437,6 @@ def add_simulate_commands(sub: Any) -> None:
         "cruise and 0.3,3 for stability, for Formulations 1 and 2 1)",
     )
     p.add_argument(
-        "--relaxation",
-        type=arg_type(over_relaxation),
-        default=None,
-        help="ADMM over-relaxation in (0, 2) for the controller and the integrated MPC; "
-        "1 is the paper's iteration (default: the example's tuned value, 1.5)",
-    )
-    p.add_argument(
         "--warm-shift",
         type=int,
         choices=(0, 1),
@@ -456,13 +444,13 @@ def add_simulate_commands(sub: Any) -> None:
         help="warm start: 1 shifts the previous iterate one step along the horizon, "
         "0 holds it (default: the example's tuned value, 1 for cruise, 0 for stability)",
     )
-    p.add_argument(
-        "--anderson",
-        type=int,
-        choices=(0, 1, 2, 3),
-        default=None,
-        help="Anderson acceleration memory for the controller and the integrated MPC; "
+    add_solver_flags(
+        p,
+        relaxation="ADMM over-relaxation in (0, 2) for the controller and the integrated "
+        "MPC; 1 is the paper's iteration (default: the example's tuned value, 1.5)",
+        anderson="Anderson acceleration memory for the controller and the integrated MPC; "
         "0 is plain ADMM, the paper (default: the example's value, 3)",
+        max_iter="the controller's iteration cap (default: 200)",
     )
     p.add_argument(
         "--integrated-rho-scale",
@@ -471,7 +459,7 @@ def add_simulate_commands(sub: Any) -> None:
         help="factor on the integrated MPC's optimal rho (controller and r_time replay) "
         "(default: the example's tuned value, 0.3 for cruise, 1.2 for stability)",
     )
-    p.add_argument("--params", metavar="FILE", default=None, help=PARAMS_HELP)
+    add_params_flag(p)
     p.add_argument(
         "--set",
         action="append",
@@ -510,15 +498,9 @@ def add_simulate_commands(sub: Any) -> None:
         default=3,
         help="timing repeats per replayed step (default: 3)",
     )
-    p.add_argument(
-        "--float32",
-        action="store_true",
-        help="simulate in float32 instead of float64 (default: float64)",
+    add_output_flags(
+        p, float32="simulate", quiet="no progress bar (default: a bar on a terminal)", out="out"
     )
-    p.add_argument(
-        "--quiet", action="store_true", help="no progress bar (default: a bar on a terminal)"
-    )
-    p.add_argument("--out", default="out", help="output directory (default: out)")
     p.set_defaults(func=cmd_simulate)
 
     d = sub.add_parser(

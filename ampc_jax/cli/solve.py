@@ -12,11 +12,13 @@ from typing import Any
 import numpy as np
 
 from .args import (
+    add_output_flags,
+    add_params_flag,
+    add_solver_flags,
     arg_type,
-    at_least_one,
     fail,
     flag_error,
-    over_relaxation,
+    non_negative_finite,
     positive_finite,
     warnings_as_lines,
 )
@@ -40,11 +42,6 @@ _FLAGS = {
     "tol_dual": "--tol",
     "tol_rel": "--tol-rel",
 }
-
-
-def _non_negative_finite(value: float) -> None:
-    if not (np.isfinite(value) and value >= 0):
-        raise ValueError(f"value: expected a finite number >= 0, got {value!r}")
 
 
 def _resolve_problem(path: str) -> Path:
@@ -580,27 +577,18 @@ def add_solve_command(sub: Any) -> None:
         help="factor(s) on the 'auto' rho: one value, or one per "
         "objective comma-separated (default: 1)",
     )
-    p.add_argument(
-        "--relaxation",
-        type=arg_type(over_relaxation),
-        default=None,
-        help="ADMM over-relaxation alpha in (0, 2); 1 is the paper's iteration (default: 1)",
+    add_solver_flags(
+        p,
+        relaxation="ADMM over-relaxation alpha in (0, 2); 1 is the paper's iteration (default: 1)",
+        anderson="Anderson acceleration memory of the ADMM iteration; 0 is the paper's "
+        "plain iteration (default: 0)",
+        max_iter=f"iteration cap (default: {MAX_ITER_DEFAULT})",
     )
-    p.add_argument(
-        "--params",
-        metavar="FILE",
-        default=None,
-        help="a tuned-parameters file (ampc tune's params.json): its solver.rho_scale and "
+    add_params_flag(
+        p,
+        "a tuned-parameters file (ampc tune's params.json): its solver.rho_scale and "
         "solver.relaxation are used; --rho-scale and --relaxation given here win over it "
         "(default: none)",
-    )
-    p.add_argument(
-        "--anderson",
-        type=int,
-        choices=(0, 1, 2, 3),
-        default=None,
-        help="Anderson acceleration memory of the ADMM iteration; 0 is the paper's "
-        "plain iteration (default: 0)",
     )
     p.add_argument(
         "--tol",
@@ -611,18 +599,12 @@ def add_solve_command(sub: Any) -> None:
     )
     p.add_argument(
         "--tol-rel",
-        type=arg_type(_non_negative_finite),
+        type=arg_type(non_negative_finite),
         default=0.0,
         help="relative tolerance eps_rel of the stopping rule (after OSQP): a residual "
         "may also be eps_rel times the size of the iterate and right-hand sides it "
         "compares; the result's duality gap (JSON 'gap', 'error_bound') says how close "
         "the inputs are (default: 0, the absolute rule alone)",
-    )
-    p.add_argument(
-        "--max-iter",
-        type=arg_type(at_least_one, int),
-        default=None,
-        help=f"iteration cap (default: {MAX_ITER_DEFAULT})",
     )
     p.add_argument(
         "--warm-start",
@@ -631,10 +613,6 @@ def add_solve_command(sub: Any) -> None:
         help="a previous --json result of this problem to shift one step and start "
         "from (default: cold start)",
     )
-    p.add_argument(
-        "--float32",
-        action="store_true",
-        help="solve in float32 instead of float64 (default: float64)",
-    )
+    add_output_flags(p, float32="solve")
     p.add_argument("--json", action="store_true", help="print one JSON object (default: a table)")
     p.set_defaults(func=cmd_solve)

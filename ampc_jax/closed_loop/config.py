@@ -32,6 +32,7 @@ from ..admm.core import FormulationInfo
 from ..admm.learned_start import StartModel
 from ..admm.params import SolverParams, solver_params
 from ..formulations.registry import DEFAULT_FORMULATION, formulation_info, formulation_names
+from ..validation import check_count, check_flag, check_positive, check_relaxation
 from ..vehicle.examples import VehicleExample, example
 from ..vehicle.manoeuvres import DriverParams, ScenarioSpec, scenario
 from ..vehicle.models import ExampleSettings
@@ -150,21 +151,7 @@ def check_mu(mu: Any, name: str = "mu") -> Any:
 
 def check_steps(n_steps: Any, name: str = "n_steps") -> int:
     """A number of control steps: an integer >= 1 (ValueError naming ``name``)."""
-    return _positive_int(name, n_steps)
-
-
-def _positive_float(name: str, v: Any) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-        raise ValueError(f"{name}: expected a positive finite number, got {v!r}")
-    if not (np.isfinite(v) and v > 0):
-        raise ValueError(f"{name}: expected a positive finite number, got {v!r}")
-    return float(v)
-
-
-def _positive_int(name: str, v: Any) -> int:
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-        raise ValueError(f"{name}: expected an integer >= 1, got {v!r}")
-    return int(v)
+    return check_count(n_steps, name)
 
 
 class ControllerParams(NamedTuple):
@@ -293,9 +280,9 @@ class SimConfig:
             )
         self.settings.validate()
         for name in ("tol_primal", "tol_dual", "shadow_tol_primal", "shadow_tol_dual"):
-            object.__setattr__(self, name, _positive_float(name, getattr(self, name)))
+            object.__setattr__(self, name, check_positive(getattr(self, name), name))
         for name in ("max_iter", "shadow_max_iter"):
-            object.__setattr__(self, name, _positive_int(name, getattr(self, name)))
+            object.__setattr__(self, name, check_count(getattr(self, name), name))
         if self.fixed_iterations is not None:
             fixed = self.fixed_iterations
             if isinstance(fixed, bool) or not isinstance(fixed, (int, np.integer)) or fixed < 1:
@@ -305,9 +292,7 @@ class SimConfig:
                 )
             object.__setattr__(self, "fixed_iterations", int(fixed))
         for name in ("warm_start", "shadow"):
-            if not isinstance(getattr(self, name), (bool, np.bool_)):
-                raise ValueError(f"{name}: expected True or False, got {getattr(self, name)!r}")
-            object.__setattr__(self, name, bool(getattr(self, name)))
+            object.__setattr__(self, name, check_flag(getattr(self, name), name))
         object.__setattr__(self, "disabled", tuple(self.disabled))
         for name in self.disabled:
             if name not in ex.objectives:
@@ -367,14 +352,9 @@ class SimConfig:
             self, "rho_scale", float(arr[0]) if arr.size == 1 else tuple(float(x) for x in arr)
         )
         for name in ("integrated_rho_scale", "shadow_rho_scale"):
-            object.__setattr__(self, name, _positive_float(name, getattr(self, name)))
+            object.__setattr__(self, name, check_positive(getattr(self, name), name))
         for name in ("relaxation", "shadow_relaxation"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)):
-                raise ValueError(f"{name}: expected a float in (0, 2), got {v!r}")
-            if not 0.0 < float(v) < 2.0:
-                raise ValueError(f"{name}: expected a value in (0, 2), got {v!r}")
-            object.__setattr__(self, name, float(v))
+            object.__setattr__(self, name, check_relaxation(getattr(self, name), name))
 
     # -- the controller ---------------------------------------------------------------
     @property

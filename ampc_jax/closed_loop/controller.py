@@ -27,7 +27,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..admm.learned_start import LearnedStart, StartModel
-from ..admm.runners import check_iterations
 from ..admm.state import ADMMState
 from ..formulations import (
     DEFAULT_FORMULATION,
@@ -39,6 +38,7 @@ from ..formulations import (
 from ..problem.data import ProblemData, make_data
 from ..problem.topology import Topology
 from ..results import usable
+from ..validation import check_count
 from ..vehicle.examples import VehicleExample
 from ..vehicle.params import Measurement, VehicleParams
 from .config import ControllerParams, SimConfig
@@ -137,7 +137,7 @@ class Controller:
             )
         object.__setattr__(self, "enabled", tuple(self.enabled))
         if self.fixed_iterations is not None:
-            k = check_iterations(self.fixed_iterations, "fixed_iterations")
+            k = check_count(self.fixed_iterations, "fixed_iterations")
             object.__setattr__(self, "fixed_iterations", k)
         if self.learned_start is not None:
             if not info.learned_start:

@@ -70,12 +70,12 @@ from ..admm.layout import padded_layout
 from ..admm.learned_start.multipliers import kkt_multipliers
 from ..admm.params import SolverParams, as_params
 from ..admm.rho import RHO_STEPS, RhoEstimates, eq_opt_ro_exact, eq_opt_ro_power, select_rho
-from ..admm.runners import check_iterations
 from ..admm.state import ADMMState, cold_state, shift_state, warm_start
 from ..admm.stopping import select_dual_residual
 from ..problem.data import ProblemData
 from ..problem.topology import Topology
 from ..results import SolveResult, SolveStats, Status
+from ..validation import check_count
 
 __all__ = ["DUAL_RESIDUALS", "RHO_METHODS", "LocalExplicit", "LocalSetup"]
 
@@ -132,10 +132,6 @@ class LocalSetup(NamedTuple):
     E: Any
     hessian: Any
     b2: Any
-
-
-def _int_at_least(name: str, value: Any, low: int) -> int:
-    return check_iterations(value, name, low)
 
 
 @dataclass(frozen=True)
@@ -211,10 +207,10 @@ class LocalExplicit(ADMMSolver):
     dual_residual: str = "slack"
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "max_iter", _int_at_least("max_iter", self.max_iter, 1))
+        object.__setattr__(self, "max_iter", check_count(self.max_iter, "max_iter"))
         object.__setattr__(self, "anderson", anderson_memory(self.anderson))
         object.__setattr__(
-            self, "rho_iterations", _int_at_least("rho_iterations", self.rho_iterations, 1)
+            self, "rho_iterations", check_count(self.rho_iterations, "rho_iterations")
         )
         if self.kkt not in KKT_SOLVES:
             raise ValueError(f"kkt: expected one of {KKT_SOLVES}, got {self.kkt!r}")

@@ -44,6 +44,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
+from ..validation import check_relaxation
+
 __all__ = [
     "PARAMS_FORMAT",
     "PREDICTION_MAX_S",
@@ -189,10 +191,7 @@ def _relaxation(value: Any) -> float | None:
         return None
     if hasattr(value, "item"):
         value = value.item()
-    v = _number("solver.relaxation", value)
-    if not 0.0 < v < 2.0:
-        raise ValueError(f"solver.relaxation: expected a value in (0, 2), got {v!r}")
-    return v
+    return check_relaxation(_number("solver.relaxation", value), "solver.relaxation")
 
 
 def _settings(value: Any) -> dict[str, Any] | None:

@@ -57,6 +57,7 @@ from ..formulations import (
 from ..problem.limits import check_memory as check_problem_memory
 from ..reference import reference_inputs
 from ..results import STATUS
+from ..validation import check_count, check_non_negative, check_relaxation
 from . import memory, store
 from .engine import Work, pair_data, pair_params, sweep_solve
 from .families import StepCases, family
@@ -169,16 +170,13 @@ class SweepSpec:
         if fam.kind == "step" and self.duration is not None:
             raise ValueError(f"duration: family {self.family!r} is of single steps")
         for name in ("cases", "chunk", "max_iter"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-                raise ValueError(f"{name}: expected an integer >= 1, got {v!r}")
+            check_count(getattr(self, name), name)
         object.__setattr__(self, "rho", tuple(float(r) for r in self.rho))
         if not self.rho or not all(np.isfinite(r) and r > 0 for r in self.rho):
             raise ValueError(f"rho: expected positive finite scales, got {self.rho!r}")
-        if self.tol is not None and not (np.isfinite(self.tol) and self.tol >= 0):
-            raise ValueError(f"tol: expected a finite value >= 0, got {self.tol!r}")
-        if not 0.0 < float(self.relaxation) < 2.0:
-            raise ValueError(f"relaxation: expected a value in (0, 2), got {self.relaxation!r}")
+        if self.tol is not None:
+            check_non_negative(self.tol, "tol")
+        check_relaxation(self.relaxation)
 
     @property
     def dtype(self) -> Any:

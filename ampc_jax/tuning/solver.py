@@ -49,8 +49,10 @@ __all__ = [
     "LOSSES",
     "SolverTuning",
     "Theta",
+    "batch_params",
     "evaluate_points",
     "pairs_program",
+    "point_row",
     "reference_inputs",
     "residual_loss",
     "theta_of",
@@ -188,6 +190,35 @@ def residual_loss(
     return jnp.mean(jax.vmap(one)(data))
 
 
+def batch_params(n: int, J: int, rho: Any, alpha: float, tol: float, dt: Any) -> SolverParams:
+    """n copies of one parameter point: rho scales (a float or (J,)), alpha, eps_r = eps_s."""
+    r = jnp.broadcast_to(jnp.asarray(np.broadcast_to(np.asarray(rho, float), (J,)), dt), (n, J))
+    full = lambda v: jnp.full((n,), v, dt)  # noqa: E731
+    return SolverParams(r, full(alpha), full(tol), full(tol), full(0.0))
+
+
+def point_row(
+    name: str, out: Any, u0_star: np.ndarray, rho_scale: Any, relaxation: float
+) -> dict[str, Any]:
+    """One evaluation row of a point solved on every case (``out``: the pairs'
+    result): iterations to tolerance (median, p95, max), the share converged,
+    and the worst first-step error max_i ||u0_i - u0*_i|| (``u0_error``) and
+    max_i ||u0_i - u0*_i|| / (||u0*_i|| + 1) (``u0_rel_error``)."""
+    it = np.asarray(out.iterations)
+    err = np.linalg.norm(np.asarray(out.u0, float) - u0_star, axis=1)
+    return {
+        "name": name,
+        "rho_scale": [float(x) for x in rho_scale],
+        "relaxation": float(relaxation),
+        "median": float(np.median(it)),
+        "p95": float(np.percentile(it, 95)),
+        "max": int(np.max(it)),
+        "converged": float(np.mean(np.asarray(out.converged))),
+        "u0_error": float(np.max(err)),
+        "u0_rel_error": float(np.max(err / (np.linalg.norm(u0_star, axis=1) + 1.0))),
+    }
+
+
 def pairs_program(solver: Any) -> Any:
     """One compiled program solving (case, point) pairs with ``solver`` to
     tolerance (:func:`~ampc_jax.sweep.engine.solve_pairs`): ``f(data, params)``."""
@@ -224,28 +255,7 @@ def evaluate_points(
 
     def measure(name: str, rho: Any, alpha: float) -> dict[str, Any]:
         r = np.broadcast_to(np.asarray(rho, float), (J,))
-        p = SolverParams(
-            jnp.broadcast_to(jnp.asarray(r, dt), (n, J)),
-            jnp.full((n,), alpha, dt),
-            jnp.full((n,), tol, dt),
-            jnp.full((n,), tol, dt),
-            jnp.zeros((n,), dt),
-        )
-        out = run(data, p)
-        it = np.asarray(out.iterations)
-        err = np.linalg.norm(np.asarray(out.u0, float) - u0_star, axis=1)
-        rel = err / (np.linalg.norm(u0_star, axis=1) + 1.0)
-        return {
-            "name": name,
-            "rho_scale": [float(x) for x in r],
-            "relaxation": float(alpha),
-            "median": float(np.median(it)),
-            "p95": float(np.percentile(it, 95)),
-            "max": int(np.max(it)),
-            "converged": float(np.mean(np.asarray(out.converged))),
-            "u0_error": float(np.max(err)),
-            "u0_rel_error": float(np.max(rel)),
-        }
+        return point_row(name, run(data, batch_params(n, J, r, alpha, tol, dt)), u0_star, r, alpha)
 
     rows = [measure(name, rho, alpha) for name, (rho, alpha) in points.items()]
     grid_rows = []

@@ -9,21 +9,12 @@ from __future__ import annotations
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ..admm.learned_start import LearnedStart, StartModel
-from ..admm.params import SolverParams
-from .solver import pairs_program
+from .solver import batch_params, pairs_program, point_row
 
-__all__ = ["batch_params", "evaluate_loops", "evaluate_model", "evaluate_starts", "start_table"]
-
-
-def batch_params(n: int, J: int, rho: Any, alpha: float, tol: float, dt: Any) -> SolverParams:
-    """n copies of one parameter point: rho scales (a float or (J,)), alpha, eps_r = eps_s."""
-    r = jnp.broadcast_to(jnp.asarray(np.broadcast_to(np.asarray(rho, float), (J,)), dt), (n, J))
-    full = lambda v: jnp.full((n,), v, dt)  # noqa: E731
-    return SolverParams(r, full(alpha), full(tol), full(tol), full(0.0))
+__all__ = ["evaluate_loops", "evaluate_model", "evaluate_starts", "start_table"]
 
 
 def evaluate_model(
@@ -103,24 +94,16 @@ def evaluate_starts(
     if model is not None:
         inner = formulation("local_explicit", T, max_iter=max_iter, anderson=cmd[2])
         contenders.append(("learned start", LearnedStart(inner, model), cmd[0], cmd[1]))
-    rows = []
-    for name, solver, rs, alpha in contenders:
-        out = pairs_program(solver)(held.data, batch_params(n, J, rs, alpha, tol, dt))
-        it = np.asarray(out.iterations)
-        err = np.linalg.norm(np.asarray(out.u0, float) - u0_star, axis=1)
-        rows.append(
-            {
-                "name": name,
-                "rho_scale": [float(x) for x in np.broadcast_to(np.asarray(rs, float), (J,))],
-                "relaxation": float(alpha),
-                "median": float(np.median(it)),
-                "p95": float(np.percentile(it, 95)),
-                "max": int(np.max(it)),
-                "converged": float(np.mean(np.asarray(out.converged))),
-                "u0_error": float(np.max(err)),
-                "u0_rel_error": float(np.max(err / (np.linalg.norm(u0_star, axis=1) + 1.0))),
-            }
+    rows = [
+        point_row(
+            name,
+            pairs_program(solver)(held.data, batch_params(n, J, rs, alpha, tol, dt)),
+            u0_star,
+            np.broadcast_to(np.asarray(rs, float), (J,)),
+            alpha,
         )
+        for name, solver, rs, alpha in contenders
+    ]
     return {"cases": n, "tol": tol, "rows": rows}
 
 

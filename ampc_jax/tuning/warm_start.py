@@ -53,8 +53,8 @@ from ..admm.params import SolverParams
 from ..admm.runners import loop_parts
 from ..validation import check_choice, check_count, check_positive
 from .fit import FitSpec, Validation, fit
+from .solver import batch_params
 from .start_evaluation import (
-    batch_params,
     evaluate_loops,
     evaluate_model,
     evaluate_starts,
