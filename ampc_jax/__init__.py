@@ -85,7 +85,16 @@ _apply_xla_workaround()
 # The public API, imported after the flags are set (importing JAX does not start
 # its CPU backend; the first computation does).
 from .admm import ADMMState, SolverParams, cold_state, shift_state, solver_params  # noqa: E402
-from .formulations import FORMULATIONS, IntegratedADMM, LocalExplicit, formulation  # noqa: E402
+from .formulations import (  # noqa: E402
+    FORMULATIONS,
+    FormulationInfo,
+    IntegratedADMM,
+    LocalExplicit,
+    formulation,
+    formulation_info,
+    formulation_names,
+    register_formulation,
+)
 from .problem import (  # noqa: E402
     Agent,
     Constraint,
@@ -105,6 +114,7 @@ __all__ = [
     "ADMMState",
     "Agent",
     "Constraint",
+    "FormulationInfo",
     "IntegratedADMM",
     "LocalExplicit",
     "Objective",
@@ -119,7 +129,10 @@ __all__ = [
     "__version__",
     "cold_state",
     "formulation",
+    "formulation_info",
+    "formulation_names",
     "make_data",
+    "register_formulation",
     "shift_state",
     "solve_reference",
     "solver_params",

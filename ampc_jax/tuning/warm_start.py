@@ -640,7 +640,7 @@ def tune_warm_start(
         "parameters": model.n_parameters,
         "kept_untrained": kept_untrained,
         "tuned_for": {
-            "formulation": "local_explicit",
+            "formulation": ts.inner.info.name,
             "rho_scale": [float(x) for x in ts.rho],
             "relaxation": st["relaxation"],
             "anderson": st["anderson"],
