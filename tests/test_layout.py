@@ -1,6 +1,7 @@
 """The package layout: one concept per module, no import circle (module-level or
-inside functions), the CLI imported by no library module, no private name imported
-across modules."""
+inside functions), the CLI and the testing helpers imported by no library module, no
+private name imported across modules, no formulation named outside the registry's
+package, no attribute forwarding by ``__getattr__``, no status as a number."""
 
 import ast
 import pathlib
