@@ -1,13 +1,24 @@
 """ampc-jax: multi-objective agent-based MPC (consensus ADMM, Local Explicit) in pure JAX.
 
-Importing the package appends to ``XLA_FLAGS`` (unless ``AMPC_KEEP_XLA_FLAGS=1``
-is set; flags already present are left as they are):
+What importing the package changes, and why (the one global effect of the
+import; it is chosen over an explicit call because the flags below are what the
+package's measured speed is, for a script and a notebook as for ``ampc``):
+
+Importing appends flags to the environment variable ``XLA_FLAGS``, nothing
+else in the environment, no ``jax.config`` option and no other process state.
+XLA reads ``XLA_FLAGS`` once, when JAX's CPU backend starts (the first
+computation, not ``import jax``), so the flags apply to every JAX computation
+of the process, this package's and any other's, and only if ``ampc_jax`` is
+imported before the first one. A flag already named in ``XLA_FLAGS`` is left as
+the user set it; ``AMPC_KEEP_XLA_FLAGS=1`` leaves ``XLA_FLAGS`` untouched.
+The flags (:data:`XLA_WORKAROUND_FLAGS`, :data:`XLA_PERFORMANCE_FLAGS`):
 
 * ``--xla_cpu_multi_thread_eigen=false`` and
-  ``--xla_cpu_enable_concurrency_optimized_scheduler=false``: an early
+  ``--xla_cpu_enable_concurrency_optimized_scheduler=false``, always: an early
   mitigation of a deadlock of batched XLA:CPU programs on small (2-core)
   machines. The deadlock's cause was later found in XLA:CPU's batched LAPACK
-  kernels, which the solvers do not call under ``vmap`` (docs/known-issues.md).
+  kernels, which the solvers do not call under ``vmap`` (docs/known-issues.md);
+  ``rho_method="eigh"`` and rank-deficient constraint rows still do.
 * with jaxlib 0.10.x only (the flag is experimental; an unknown flag aborts
   XLA), ``--xla_cpu_experimental_ynn_fusion_type=``: no YNNPACK fusions. On
   this package's small matrices YNNPACK's per-call overhead dominated:
@@ -23,8 +34,8 @@ is set; flags already present are left as they are):
   closed-loop DLC from 467x to 908x real time (docs/history.md). Skipped when
   ``XLA_FLAGS`` already sets ``--xla_backend_extra_options``.
 
-The flags only take effect if JAX's CPU backend has not started yet, so import
-``ampc_jax`` first.
+``tests/test_package.py`` pins this list: the import changes ``XLA_FLAGS``
+alone, by exactly the flags named here.
 """
 
 import os as _os
@@ -74,7 +85,16 @@ _apply_xla_workaround()
 # The public API, imported after the flags are set (importing JAX does not start
 # its CPU backend; the first computation does).
 from .admm import ADMMState, SolverParams, cold_state, shift_state, solver_params  # noqa: E402
-from .formulations import FORMULATIONS, IntegratedADMM, LocalExplicit, formulation  # noqa: E402
+from .formulations import (  # noqa: E402
+    FORMULATIONS,
+    FormulationInfo,
+    IntegratedADMM,
+    LocalExplicit,
+    formulation,
+    formulation_info,
+    formulation_names,
+    register_formulation,
+)
 from .problem import (  # noqa: E402
     Agent,
     Constraint,
@@ -94,6 +114,7 @@ __all__ = [
     "ADMMState",
     "Agent",
     "Constraint",
+    "FormulationInfo",
     "IntegratedADMM",
     "LocalExplicit",
     "Objective",
@@ -108,7 +129,10 @@ __all__ = [
     "__version__",
     "cold_state",
     "formulation",
+    "formulation_info",
+    "formulation_names",
     "make_data",
+    "register_formulation",
     "shift_state",
     "solve_reference",
     "solver_params",

@@ -56,17 +56,16 @@ import argparse
 import json
 import os
 import random
-import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "can_bridge"))
+import _meta  # bench/_meta.py, beside this script
+import can
 
-import _meta  # noqa: E402  (bench/_meta.py, beside this script)
-import can  # noqa: E402
-from cb_fault_peers import (  # noqa: E402
+import can_bridge
+from ampc_jax.testing.can_fault_peers import (
     SerialAdapter,
     SocketcandBus,
     SocketcandServer,
@@ -76,9 +75,7 @@ from cb_fault_peers import (  # noqa: E402
     open_raw_host,
     read_all,
 )
-from cb_peers import MOTION, WHEELS, CmdChecker, send_sensors, state_message  # noqa: E402
-
-import can_bridge  # noqa: E402
+from ampc_jax.testing.can_peers import MOTION, WHEELS, CmdChecker, send_sensors, state_message
 
 CYCLE = 0.02  # the sensors' cycle (the DBC's GenMsgCycleTime)
 
@@ -769,7 +766,7 @@ def sensors() -> dict:
         for k in range(100):
             for f in frames(k):
                 bus.send(state_message(f[0], f[1], f[2], corrupt=len(f) > 3 and f[3]))
-            # the other four messages, sound (cb_peers.SENSORS' healthy values)
+            # the other four messages, sound (can_peers.SENSORS' healthy values)
             send_sensors(bus, k % 15, skip=("VehicleMotion",))
             time.sleep(CYCLE)
             if k >= 5:

@@ -69,6 +69,7 @@ import _meta  # bench/_meta.py, beside this script
 import numpy as np
 
 import ampc_jax  # noqa: F401  (XLA:CPU workaround before JAX starts)
+from ampc_jax.results import Status, usable
 
 STEM = "bench_closed_loop"
 EXAMPLES = {
@@ -126,7 +127,7 @@ class Replay:
 
             def step(warm: Any, d: Any) -> Any:
                 res = solver.solve(d, p, warm)
-                ok = (res.status <= 1) & jnp.all(jnp.isfinite(res.u0))
+                ok = usable(res.status) & jnp.all(jnp.isfinite(res.u0))
                 shifted = solver.shift(res.state, warm_shift)
                 new = jax.tree.map(lambda a, b: jnp.where(ok, a, b), shifted, cold)
                 return (new if warm_start else cold), (res.iterations, res.u0, res.status)
@@ -228,7 +229,7 @@ def stats(r: dict[str, np.ndarray], g: int) -> dict[str, float]:
         "mean": float(it.mean()),
         "e95": float(np.percentile(e, 95)),
         "emax": float(e.max()),
-        "not_solved": int(np.sum(r["status"][g] != 0)),
+        "not_solved": int(np.sum(r["status"][g] != Status.SOLVED)),
     }
 
 

@@ -68,6 +68,7 @@ import _meta  # bench/_meta.py, beside this script
 import numpy as np
 
 import ampc_jax  # noqa: F401  (XLA:CPU workaround before JAX starts)
+from ampc_jax.results import Status
 
 STEM = "bench_formulations"
 ROOT = Path(__file__).resolve().parents[1]
@@ -287,7 +288,7 @@ def families(args: argparse.Namespace, tqdm: Any) -> list[dict[str, Any]]:
             d = jax.device_put(p.data())
             ref = solve_reference(T, d)
             u_ref = np.asarray(ref.u, float)[0]
-            if int(ref.status) != 0:
+            if int(ref.status) != Status.SOLVED:
                 ref_bad += 1
             res = {n: jax.block_until_ready(fns[n](d, params[n])) for n in contenders}  # warm
             ts: dict[str, list[float]] = {n: [] for n in contenders}

@@ -28,6 +28,7 @@ import ampc_jax  # noqa: F401  (XLA:CPU workaround before JAX starts)
 from ampc_jax.formulations import formulation
 from ampc_jax.generate import random_problem
 from ampc_jax.reference import solve_reference
+from ampc_jax.results import Status
 
 jax.config.update("jax_enable_x64", True)
 
@@ -64,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
             q = f.params(tol_primal=args.tol, tol_dual=args.tol)
             res = jax.jit(jax.vmap(f.solve, in_axes=(0, None)))(data, q)
             its = np.asarray(res.iterations)
-            ok = np.asarray(res.status) == 0
+            ok = np.asarray(res.status) == Status.SOLVED
             u0 = np.asarray(res.u0)
             err = max(
                 float(np.max(np.abs(u0[b] - r) / (np.abs(r) + 1e-3))) for b, r in enumerate(refs)

@@ -117,6 +117,8 @@ from __future__ import annotations
 import os
 import sys
 
+from ampc_jax.results import Status  # noqa: E402
+
 
 def _preset() -> None:
     """Before JAX starts: pin this process (``--pin CORE``: the latency child) and give
@@ -816,7 +818,7 @@ def calibrate(
                 _, out = le.run(ops, n_ref, tol=tol, keep=n_ref)
                 w, m = errors(out["u0"], u_ref)
                 its = out["iterations"]
-                conv = float(np.mean(out["status"] == 0))
+                conv = float(np.mean(out["status"] == Status.SOLVED))
                 scan.append(
                     {
                         "tol": tol,
@@ -1616,7 +1618,7 @@ def throughput_one(
         e = errors(o["u0"][:k], u_ref[:k])
         if name.startswith("LE "):
             setting = f"tol {les[name].tol:g}"
-            solved = float(np.mean(o["status"][:k] == 0))
+            solved = float(np.mean(o["status"][:k] == Status.SOLVED))
         elif name == "qpax":
             setting = f"{st['qpax_iters']} iterations"
             solved = float("nan")

@@ -52,6 +52,7 @@ import _meta  # bench/_meta.py, beside this script
 import numpy as np
 
 import ampc_jax  # noqa: F401  (XLA:CPU workaround before JAX starts)
+from ampc_jax.results import usable
 
 STEM = "bench_qp_peers"
 
@@ -157,7 +158,7 @@ def run_scenario(
         record("Local Explicit", t, r.u0, r.iterations)
         t, r = _timed(f_ia, datas[k], p_ia, w_i, repeats=repeats)
         record("IntegratedADMM", t, r.u0, r.iterations)
-        ok = (int(r.status) <= 1) and bool(np.all(np.isfinite(np.asarray(r.u0))))
+        ok = usable(int(r.status)) and bool(np.all(np.isfinite(np.asarray(r.u0))))
         w_i = ia.shift(r.state, shift) if (ok and cfg.warm_start) else cold_i
         lb0, ub0 = np.asarray(datas[k].lb[0]), np.asarray(datas[k].ub[0])
         for label, (fn, cold) in peers.items():

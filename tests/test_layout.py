@@ -1,6 +1,7 @@
 """The package layout: one concept per module, no import circle (module-level or
-inside functions), the CLI imported by no library module, no private name imported
-across modules."""
+inside functions), the CLI and the testing helpers imported by no library module, no
+private name imported across modules, no formulation named outside the registry's
+package, no attribute forwarding by ``__getattr__``, no status as a number."""
 
 import ast
 import pathlib
@@ -141,3 +142,169 @@ def test_one_concept_per_module_stays_small():
     """No module of more than about 700 lines (the flat modules were up to 1,400)."""
     big = {m: n for m, p in MODULES.items() if (n := len(p.read_text().splitlines())) > 700}
     assert not big, big
+
+
+def _formulation_name_uses(tree: ast.AST, names: set[str]) -> list[tuple[int, str]]:
+    """(line, name) where a formulation's name is compared, listed (two or more
+    names in one tuple, list or set) or a dict key: a branch or a list kept
+    outside the registry."""
+
+    def strings(node: ast.AST) -> list[str]:
+        if isinstance(node, ast.Constant) and isinstance(node.value, str):
+            return [node.value]
+        if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+            return [s for e in node.elts for s in strings(e)]
+        return []
+
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Compare):
+            found = [s for e in (node.left, *node.comparators) for s in strings(e) if s in names]
+        elif isinstance(node, ast.Dict):
+            found = [s for k in node.keys if k is not None for s in strings(k) if s in names]
+        elif isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+            listed = [s for s in strings(node) if s in names]
+            found = listed if len(listed) > 1 else []
+        elif isinstance(node, ast.match_case):
+            found = [s for s in strings(getattr(node.pattern, "value", None)) if s in names]
+        else:
+            found = []
+        out.extend((node.lineno if hasattr(node, "lineno") else 0, s) for s in found)
+    return out
+
+
+def test_no_module_outside_formulations_branches_on_a_formulation_name():
+    """What a formulation is comes from its declared info, through the registry
+    (``formulation_info``, ``formulation_names``): no module outside
+    ``formulations/`` compares a formulation's name or keeps a list of them."""
+    from ampc_jax.formulations import FORMULATIONS
+
+    names = set(FORMULATIONS)
+    bad = [
+        f"{m}:{line} {name!r}"
+        for m, p in MODULES.items()
+        if not m.startswith("ampc_jax.formulations")
+        for line, name in _formulation_name_uses(ast.parse(p.read_text()), names)
+    ]
+    assert not bad, bad
+
+
+def test_the_formulation_name_check_finds_branches_and_lists():
+    src = (
+        "if args.formulation == 'integrated': pass\n"
+        "BATCH = {'local_explicit': 'riccati'}\n"
+        "CONSENSUS = ('fully_distributed', 'virtual_center')\n"
+        "ok = formulation('local_explicit', T)\n"
+    )
+    found = _formulation_name_uses(
+        ast.parse(src), {"integrated", "local_explicit", "fully_distributed", "virtual_center"}
+    )
+    assert sorted(found) == [
+        (1, "integrated"),
+        (2, "local_explicit"),
+        (3, "fully_distributed"),
+        (3, "virtual_center"),
+    ]
+
+
+def test_no_class_forwards_attributes_with_getattr():
+    """A wrapper (a solver around a formulation, ``LearnedStart``) declares what it
+    offers: no class defines ``__getattr__`` or ``__getattribute__`` to forward
+    any attribute to what it wraps (what the wrapper needs goes into the core
+    protocol, ``ADMMSolver``)."""
+    bad = [
+        f"{m}:{node.lineno} {node.name}.{f.name}"
+        for m, p in MODULES.items()
+        for node in ast.walk(ast.parse(p.read_text()))
+        if isinstance(node, ast.ClassDef)
+        for f in node.body
+        if isinstance(f, ast.FunctionDef) and f.name in ("__getattr__", "__getattribute__")
+    ]
+    assert not bad, bad
+
+
+def test_no_library_module_imports_the_testing_helpers():
+    """``ampc_jax.testing`` (the peers the tests and benchmarks share) is imported
+    by tests and benchmarks only."""
+    for m, p in MODULES.items():
+        if m.startswith("ampc_jax.testing"):
+            continue
+        for target, _, _ in _imports(p):
+            assert not _resolve(target).startswith("ampc_jax.testing"), f"{m} imports {target}"
+
+
+ROOT = PKG.parent
+
+
+def _mentions_status(node: ast.AST) -> bool:
+    """``status``, ``x.status``, ``x["status"]``, ``int(x.status)``, ``np.asarray(x.status)``."""
+    if isinstance(node, ast.Name):
+        return "status" in node.id.lower() and node.id != "Status"
+    if isinstance(node, ast.Attribute):
+        return "status" in node.attr.lower() or _mentions_status(node.value)
+    if isinstance(node, ast.Subscript):
+        key = node.slice
+        named = (
+            isinstance(key, ast.Constant) and isinstance(key.value, str) and "status" in key.value
+        )
+        return named or _mentions_status(node.value)
+    if isinstance(node, ast.Call):
+        return any(_mentions_status(a) for a in node.args)
+    return False
+
+
+def _int_literal(node: ast.AST) -> bool:
+    """An integer literal, bare or wrapped (``np.int32(4)``)."""
+    if isinstance(node, ast.Constant):
+        return isinstance(node.value, int) and not isinstance(node.value, bool)
+    if isinstance(node, ast.UnaryOp):
+        return _int_literal(node.operand)
+    if isinstance(node, ast.Call) and len(node.args) == 1 and not node.keywords:
+        return _int_literal(node.args[0])
+    return False
+
+
+def _literal_status_codes(tree: ast.AST) -> list[int]:
+    """Lines where a status is compared with, or set to, a number instead of a
+    ``Status`` member."""
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Compare):
+            sides = [node.left, *node.comparators]
+            if any(_mentions_status(s) for s in sides) and any(_int_literal(s) for s in sides):
+                out.append(node.lineno)
+        elif isinstance(node, ast.keyword) and node.arg and "status" in node.arg:
+            if _int_literal(node.value):
+                out.append(node.value.lineno)
+    return sorted(out)
+
+
+# the runtime's own numbers (a failed tick's status, the tick journal's "no step"
+# mark) become Status members and a named constant with the runtime's next change
+_STATUS_PENDING = {"ampc_jax/runtime/runner.py", "ampc_jax/runtime/runcheck.py"}
+
+
+def test_no_literal_status_codes():
+    """A status is a ``results.Status`` member everywhere, in the package, its tests
+    and its benchmarks: never ``status == 0`` or ``status=np.int32(4)``."""
+    files = sorted(PKG.rglob("*.py")) + sorted((ROOT / "tests").rglob("*.py"))
+    files += sorted((ROOT / "bench").rglob("*.py"))
+    bad = [
+        f"{rel}:{line}"
+        for f in files
+        if (rel := str(f.relative_to(ROOT))) not in _STATUS_PENDING
+        for line in _literal_status_codes(ast.parse(f.read_text()))
+    ]
+    assert not bad, bad
+
+
+def test_the_status_check_finds_literals():
+    src = (
+        "assert int(res.status) == 2\n"
+        "ok = np.all(np.asarray(out.status) == 0)\n"
+        "conv = out['status'] == 0\n"
+        "r = report._replace(status=np.int32(4))\n"
+        "fine = res.status == Status.SOLVED\n"
+        "also = res.iterations == 3\n"
+    )
+    assert _literal_status_codes(ast.parse(src)) == [1, 2, 3, 4]

@@ -1,4 +1,6 @@
-"""Import-time XLA flags of ampc_jax (README, "Known issues" and "Speed")."""
+"""Import-time XLA flags of ampc_jax (README, "Known issues" and "Speed"): the one
+global effect of the import, stated in the package docstring, and the README's
+Python block."""
 
 import os
 import subprocess
@@ -68,6 +70,39 @@ def test_small_while_loop_threshold_flag():
     )
     assert _run(probe) == "True"
     assert _run(probe, AMPC_KEEP_XLA_FLAGS="1") == "False"
+
+
+def test_the_import_changes_xla_flags_alone_as_the_docstring_states():
+    """Importing ampc_jax changes no environment variable but XLA_FLAGS, and appends
+    exactly the flags its docstring names (the workaround always, the performance
+    flags for the jaxlib versions they were measured with)."""
+    from importlib.metadata import version
+
+    import ampc_jax
+
+    probe = (
+        "import json, os\n"
+        "before = dict(os.environ)\n"
+        "import ampc_jax\n"
+        "after = dict(os.environ)\n"
+        "print(json.dumps(sorted(k for k in set(before) | set(after) "
+        "if before.get(k) != after.get(k))))\n"
+        "print(after.get('XLA_FLAGS', ''))\n"
+    )
+    changed, flags = _run(probe).splitlines()
+    assert changed == '["XLA_FLAGS"]'
+    wanted = list(ampc_jax.XLA_WORKAROUND_FLAGS)
+    for prefix, extra in ampc_jax.XLA_PERFORMANCE_FLAGS.items():
+        if version("jaxlib").startswith(prefix):
+            wanted.extend(extra)
+    assert flags.split() == wanted
+    doc = " ".join(ampc_jax.__doc__.split())
+    every = [*ampc_jax.XLA_WORKAROUND_FLAGS]
+    every += [f for extra in ampc_jax.XLA_PERFORMANCE_FLAGS.values() for f in extra]
+    for flag in every:
+        assert f"``{flag}``" in doc, flag
+    assert "AMPC_KEEP_XLA_FLAGS=1" in doc
+    assert _run(probe, AMPC_KEEP_XLA_FLAGS="1").splitlines()[0] == "[]"
 
 
 def _readme_python_block() -> str:

@@ -11,6 +11,7 @@ from ampc_jax.formulations import LocalExplicit
 from ampc_jax.generate import random_problem
 from ampc_jax.problem import Constraint, Objective, Problem, condensed_qp, cost_offset
 from ampc_jax.reference import OSQPReference, _reference_status, solve_reference
+from ampc_jax.results import Status
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -116,7 +117,7 @@ def test_solve_reference_osqp_agrees_with_clarabel(n_obj, shared):
             p = random_problem(seed, n_obj, shared=shared, horizon=8, **kw)
             ref = clarabel(p)
             res = solve_reference(p.topology, p.data(), "osqp")
-            assert res.status == 0 and bool(res.converged)
+            assert res.status == Status.SOLVED and bool(res.converged)
             assert res.u.shape == ref.u.shape == (8, p.topology.n_u)
             assert_same_optimum(res.u, ref.u, what=f"seed {seed} {kw}")
 
@@ -155,7 +156,7 @@ def test_osqp_reference_update_matches_clarabel_on_the_new_problem(n_obj, shared
     assert_same_optimum(r1.u, ref1.u, what="before the update")
     osqp.update(d2)
     r2 = osqp.solve()
-    assert r2.status == 0
+    assert r2.status == Status.SOLVED
     assert_same_optimum(r2.u, ref2.u, what="after the update")
     assert np.max(np.abs(ref1.u - ref2.u)) > 0.1  # the update had something to do
     # and back (the explicit zeros of P are kept, so its sparsity never changes)

@@ -11,10 +11,11 @@
 * :mod:`~.runners` -- the ``while_loop`` and fixed-``scan`` runners;
 * :mod:`~.core` -- :class:`ADMMSolver`, the core protocol every formulation
   implements (setup, init, step, converged, result, point / at) and the
-  runners written once on it.
+  runners written once on it; :class:`FormulationInfo`, what a formulation
+  declares it is.
 """
 
-from .core import ADMMSolver
+from .core import ADMMSolver, FormulationInfo
 from .params import DEFAULT_TOL, SolverParams, solver_params
 from .state import ADMMState, cold_state, shift_horizon, shift_state
 
@@ -22,6 +23,7 @@ __all__ = [
     "DEFAULT_TOL",
     "ADMMSolver",
     "ADMMState",
+    "FormulationInfo",
     "SolverParams",
     "cold_state",
     "shift_horizon",

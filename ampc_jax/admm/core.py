@@ -30,7 +30,9 @@ these protocol methods only.
 from __future__ import annotations
 
 import abc
-from typing import Any
+import keyword
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 from ..problem.data import ProblemData
 from ..problem.topology import Topology
@@ -39,7 +41,72 @@ from .feasibility import with_certificate
 from .params import DEFAULT_TOL, DEFAULT_TOL_REL, SolverParams, solver_params
 from .runners import run_fixed, run_while
 
-__all__ = ["ADMMSolver"]
+__all__ = ["RHO_BASES", "RHO_COUNTS", "ADMMSolver", "FormulationInfo"]
+
+RHO_COUNTS = ("objective", "one")
+"""How many rho a formulation takes: one rho_j per objective, or one for the problem."""
+
+RHO_BASES = ("opt_ro", "hessian")
+"""What ``params.rho`` is a factor on: eq.opt_ro's rho_j* (Local Explicit, the
+integrated ADMM), or sqrt(lambda_min lambda_max) of H_j (Ghadimi's penalty for
+the consensus constraint U_j - Z_j = 0, Formulations 1 and 2)."""
+
+
+@dataclass(frozen=True)
+class FormulationInfo:
+    """What a formulation is, declared once on its class (``info``) and read by
+    everything that chooses or describes one (the registry,
+    :mod:`ampc_jax.formulations.registry`; the closed loop, sweeps, tuning, the CLI).
+
+    name : the registry name (``"local_explicit"``), an identifier; ``"none"`` is
+        the closed loop's "no MPC" and taken.
+    title : the paper's name, for messages (``"Local Explicit (Formulation 3)"``).
+    label : the short name figure legends print (``"Local Explicit"``).
+    rho : ``"objective"`` (one rho_j per objective) or ``"one"`` (one rho for
+        the whole problem) (:data:`RHO_COUNTS`).
+    rho_basis : what ``params.rho`` multiplies (:data:`RHO_BASES`); it picks the
+        example default a closed loop starts from (``rho_scale`` or
+        ``consensus_rho_scale``; a one-rho formulation takes
+        ``integrated_rho_scale``).
+    decomposed : one local problem per objective (True), or the integrated MPC
+        solved whole (False: the peer of the time ratio eq.t_ratio, for which
+        ``ampc solve --solver`` offers the reference solvers).
+    batch_kkt : the ``kkt`` option a batch of single steps is built with (a
+        sweep), or None where the formulation has no such option.
+    closed_loop : it may run as the controller of a closed loop.
+    learned_start : it serves a learned start (:mod:`ampc_jax.admm.learned_start`):
+        its iterate is an :class:`~ampc_jax.admm.state.ADMMState` and it
+        implements :meth:`ADMMSolver.start_from_inputs`.
+    state_file : its iterate is written and read per objective (``local_inputs``,
+        ``multipliers``, ``state_of``): ``ampc solve --json``'s ``warm_state``
+        and ``--warm-start``.
+    """
+
+    name: str
+    title: str
+    label: str
+    rho: str = "objective"
+    rho_basis: str = "opt_ro"
+    decomposed: bool = True
+    batch_kkt: str | None = None
+    closed_loop: bool = True
+    learned_start: bool = False
+    state_file: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.name.isidentifier() or keyword.iskeyword(self.name) or self.name == "none":
+            raise ValueError(
+                f"name: expected an identifier other than 'none' (the closed loop's "
+                f"no-MPC choice), got {self.name!r}"
+            )
+        if self.rho not in RHO_COUNTS:
+            raise ValueError(f"rho: expected one of {RHO_COUNTS}, got {self.rho!r}")
+        if self.rho_basis not in RHO_BASES:
+            raise ValueError(f"rho_basis: expected one of {RHO_BASES}, got {self.rho_basis!r}")
+
+    def n_rho(self, n_objectives: int) -> int:
+        """The length of ``params.rho`` for a problem of ``n_objectives`` objectives."""
+        return int(n_objectives) if self.rho == "objective" else 1
 
 
 class ADMMSolver(abc.ABC):
@@ -55,6 +122,10 @@ class ADMMSolver(abc.ABC):
     topology: Topology
     max_iter: int
     anderson: int
+
+    #: what the formulation is (:class:`FormulationInfo`); None for a solver that
+    #: wraps another (:class:`~ampc_jax.admm.learned_start.LearnedStart`)
+    info: ClassVar[FormulationInfo | None] = None
 
     # -- the protocol ------------------------------------------------------------------
     @property
@@ -97,6 +168,17 @@ class ADMMSolver(abc.ABC):
     @abc.abstractmethod
     def shift(self, state: Any, steps: int = 1) -> Any:
         """The MPC warm start: ``state`` moved ``steps`` (0 or 1) along the horizon."""
+
+    def start_from_inputs(self, setup: Any, data: ProblemData, u: Any, like: Any) -> Any:
+        """The state at which the inputs ``u`` (N_p x n_u) are a fixed point of the
+        iteration on ``setup`` (iteration 0, residuals inf; ``like``: a state of
+        the wanted dtype and structure, e.g. :meth:`init`'s). What a learned
+        ``"step"`` start builds from its predicted inputs
+        (:mod:`ampc_jax.admm.learned_start`). Optional: a formulation declaring
+        ``info.learned_start`` implements it."""
+        raise NotImplementedError(
+            f"{type(self).__name__}: no start from given inputs (it serves no learned start)"
+        )
 
     # -- the runners, once ---------------------------------------------------------------
     def params(

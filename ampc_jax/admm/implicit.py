@@ -70,11 +70,11 @@ import numpy as np
 
 from ..problem.data import ProblemData
 from ..results import SolveResult
+from ..validation import check_count, check_positive
 from .acceleration import anderson_init, anderson_step
 from .core import ADMMSolver
 from .feasibility import with_certificate
 from .params import SolverParams
-from .runners import check_iterations
 
 __all__ = ["adjoint_tolerance", "run_implicit", "solve_implicit"]
 
@@ -99,16 +99,9 @@ def _add(u: Any, v: Any) -> Any:
 
 def _check_options(adjoint_tol: Any, adjoint_max_iter: Any) -> None:
     if adjoint_tol is not None:
-        try:
-            t = float(adjoint_tol)
-        except (TypeError, ValueError):
-            raise ValueError(
-                f"adjoint_tol: expected a positive finite number, got {adjoint_tol!r}"
-            ) from None
-        if isinstance(adjoint_tol, bool) or not (np.isfinite(t) and t > 0):
-            raise ValueError(f"adjoint_tol: expected a positive finite number, got {adjoint_tol!r}")
+        check_positive(adjoint_tol, "adjoint_tol")
     if adjoint_max_iter is not None:
-        check_iterations(adjoint_max_iter, "adjoint_max_iter")
+        check_count(adjoint_max_iter, "adjoint_max_iter")
 
 
 def _adjoint(solver: ADMMSolver, vjp_x: Any, a: Any, tol: Any, max_iter: int) -> Any:

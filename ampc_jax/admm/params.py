@@ -16,6 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..validation import check_values
+
 __all__ = ["DEFAULT_TOL", "DEFAULT_TOL_REL", "SolverParams", "as_params", "solver_params"]
 
 DEFAULT_TOL = 1e-6
@@ -51,20 +53,6 @@ class SolverParams(NamedTuple):
     tol_primal: Any
     tol_dual: Any
     tol_rel: Any
-
-
-def _finite(name: str, value: Any, low: float, high: float, *, open_low: bool = True) -> None:
-    try:
-        a = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected numbers, got {value!r:.80}") from None
-    if isinstance(value, bool) or a.dtype == bool:
-        raise ValueError(f"{name}: expected numbers, got {value!r}")
-    ok = np.isfinite(a) & (a < high) & ((a > low) if open_low else (a >= low))
-    if not np.all(ok):
-        side = ">" if open_low else ">="
-        top = f" and < {high:g}" if np.isfinite(high) else ""
-        raise ValueError(f"{name}: expected finite values {side} {low:g}{top}, got {value!r:.80}")
 
 
 def solver_params(
@@ -103,11 +91,11 @@ def solver_params(
             raise ValueError(
                 f"rho: expected a float or {J} values (one per objective), got shape {r.shape}"
             )
-        _finite("rho", rho, 0.0, np.inf)
-        _finite("relaxation", relaxation, 0.0, 2.0)
-        _finite("tol_primal", tol_primal, 0.0, np.inf, open_low=False)
-        _finite("tol_dual", tol_dual, 0.0, np.inf, open_low=False)
-        _finite("tol_rel", tol_rel, 0.0, np.inf, open_low=False)
+        check_values(rho, "rho", 0.0, np.inf)
+        check_values(relaxation, "relaxation", 0.0, 2.0)
+        check_values(tol_primal, "tol_primal", 0.0, np.inf, open_low=False)
+        check_values(tol_dual, "tol_dual", 0.0, np.inf, open_low=False)
+        check_values(tol_rel, "tol_rel", 0.0, np.inf, open_low=False)
     r = jnp.asarray(rho, dt)
     r = r[..., None] if r.ndim == 0 else r
     rest = [jnp.asarray(v, dt) for v in (relaxation, tol_primal, tol_dual, tol_rel)]

@@ -14,8 +14,8 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
+from ..validation import check_count
 from .acceleration import anderson_init, anderson_step
 
 __all__ = ["check_iterations", "loop_parts", "run_fixed", "run_while", "still_running"]
@@ -23,14 +23,8 @@ __all__ = ["check_iterations", "loop_parts", "run_fixed", "run_while", "still_ru
 
 def check_iterations(iterations: Any, name: str = "iterations", low: int = 1) -> int:
     """A static count (iterations, cases, steps): an integer >= ``low``, or a
-    ValueError naming ``name``; the one check every count of the package goes through."""
-    if (
-        isinstance(iterations, bool)
-        or not isinstance(iterations, (int, np.integer))
-        or iterations < low
-    ):
-        raise ValueError(f"{name}: expected an integer >= {low}, got {iterations!r}")
-    return int(iterations)
+    ValueError naming ``name`` (:func:`ampc_jax.validation.check_count`)."""
+    return check_count(iterations, name, low)
 
 
 def loop_parts(

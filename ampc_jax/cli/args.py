@@ -17,15 +17,20 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, NoReturn
 
-import numpy as np
+from ..validation import check_count, check_non_negative, check_positive, check_relaxation
 
 __all__ = [
+    "ANDERSON_MEMORIES",
     "PARAMS_HELP",
     "Parser",
+    "add_output_flags",
+    "add_params_flag",
+    "add_solver_flags",
     "arg_type",
     "at_least_one",
     "fail",
     "flag_error",
+    "non_negative_finite",
     "output_dir",
     "over_relaxation",
     "positive_finite",
@@ -77,18 +82,23 @@ def arg_type(check: Callable[[Any], Any], kind: type = float) -> Callable[[str],
 
 
 def positive_finite(value: float) -> None:
-    if not (np.isfinite(value) and value > 0):
-        raise ValueError(f"value: expected a positive finite number, got {value!r}")
+    """A flag's positive finite number (:func:`ampc_jax.validation.check_positive`)."""
+    check_positive(value, "value")
+
+
+def non_negative_finite(value: float) -> None:
+    """A flag's finite number >= 0 (:func:`ampc_jax.validation.check_non_negative`)."""
+    check_non_negative(value, "value")
 
 
 def over_relaxation(value: float) -> None:
-    if not (np.isfinite(value) and 0.0 < value < 2.0):
-        raise ValueError(f"relaxation: expected a value in (0, 2), got {value!r}")
+    """A flag's over-relaxation in (0, 2) (:func:`ampc_jax.validation.check_relaxation`)."""
+    check_relaxation(value)
 
 
 def at_least_one(value: int) -> None:
-    if value < 1:
-        raise ValueError(f"value: expected an integer >= 1, got {value!r}")
+    """A flag's integer >= 1 (:func:`ampc_jax.validation.check_count`)."""
+    check_count(value, "value")
 
 
 def flag_error(exc: Exception, flags: Mapping[str, str]) -> str:
@@ -142,7 +152,7 @@ def with_params_file(config: Any, path: str | None, keep: tuple[str, ...] = ()) 
     ValueError ``--params PATH: field: message`` on a bad file."""
     if path is None:
         return config
-    from ..tuning.params_file import apply_params, read_params
+    from ..io.params_file import apply_params, read_params
 
     try:
         return apply_params(config, read_params(path), keep=keep)
@@ -156,3 +166,63 @@ PARAMS_HELP = (
     "win over it (default: none)"
 )
 """The help of ``--params`` for the closed-loop commands."""
+
+
+# -- flag groups: the blocks every command that solves, or writes, repeats --------------
+ANDERSON_MEMORIES = (0, 1, 2, 3)
+"""The Anderson memories ``--anderson`` takes (:data:`~ampc_jax.admm.acceleration.ANDERSON_MAX`)."""
+
+
+def add_solver_flags(
+    p: argparse.ArgumentParser,
+    *,
+    relaxation: str | None = None,
+    anderson: str | None = None,
+    max_iter: str | None = None,
+    max_iter_default: int | None = None,
+) -> None:
+    """``--relaxation`` (in (0, 2)), ``--anderson`` (0 to 3) and ``--max-iter`` (>= 1),
+    each added when its help text is given (the command's own words and default;
+    ``None`` as the parsed default means the command resolves it)."""
+    if relaxation is not None:
+        p.add_argument(
+            "--relaxation", type=arg_type(over_relaxation), default=None, help=relaxation
+        )
+    if anderson is not None:
+        p.add_argument(
+            "--anderson", type=int, choices=ANDERSON_MEMORIES, default=None, help=anderson
+        )
+    if max_iter is not None:
+        p.add_argument(
+            "--max-iter", type=arg_type(at_least_one, int), default=max_iter_default, help=max_iter
+        )
+
+
+def add_params_flag(p: argparse.ArgumentParser, help: str = PARAMS_HELP) -> None:
+    """``--params FILE``, a tuned-parameters file (:mod:`ampc_jax.io.params_file`)."""
+    p.add_argument("--params", metavar="FILE", default=None, help=help)
+
+
+def add_output_flags(
+    p: argparse.ArgumentParser,
+    *,
+    float32: str | None = None,
+    quiet: str | None = None,
+    out: str | None = None,
+    out_required: bool = False,
+    out_help: str = "output directory",
+) -> None:
+    """``--float32`` (``float32``: what runs in float32), ``--quiet`` (its help) and
+    ``--out`` (``out``: its default, or ``out_required``), each where given."""
+    if float32 is not None:
+        p.add_argument(
+            "--float32",
+            action="store_true",
+            help=f"{float32} in float32 instead of float64 (default: float64)",
+        )
+    if quiet is not None:
+        p.add_argument("--quiet", action="store_true", help=quiet)
+    if out_required:
+        p.add_argument("--out", required=True, help=f"{out_help} (required)")
+    elif out is not None:
+        p.add_argument("--out", default=out, help=f"{out_help} (default: {out})")

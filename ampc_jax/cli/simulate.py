@@ -19,13 +19,14 @@ from typing import Any
 import numpy as np
 
 from .args import (
-    PARAMS_HELP,
+    add_output_flags,
+    add_params_flag,
+    add_solver_flags,
     arg_type,
     at_least_one,
     fail,
     flag_error,
     output_dir,
-    over_relaxation,
     positive_finite,
     progress_disabled,
     with_params_file,
@@ -231,7 +232,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         return fail(problem)
     print(_header(args.scenario, cfg))
     out = Path(args.out)
-    timing = cfg.formulation not in ("integrated", "none") and not args.no_timing and cfg.shadow
+    decomposed = cfg.mpc and cfg.formulation_info.decomposed  # r_time: against the integrated
+    timing = decomposed and not args.no_timing and cfg.shadow
     m, mb, figs = _run(
         spec,
         cfg,
@@ -265,7 +267,7 @@ def _parse_floats(flag: str, text: str | None) -> float | tuple[float, ...] | No
 def _header(scenario: str, cfg: Any) -> str:
     """The first line printed: the scenario and the solver settings it runs (the
     example's ``solver_defaults`` where no flag or file gave one)."""
-    if cfg.formulation == "none":
+    if not cfg.mpc:
         return f"ampc simulate: {scenario}, no MPC"
     o = cfg.solver_options()
     rs = o["rho_scale"]
@@ -281,7 +283,7 @@ def _header(scenario: str, cfg: Any) -> str:
 def _warn_tuned_for(path: str, cfg: Any, dtype: str) -> None:
     """One warning line on stderr when the file was tuned under other solver
     settings than ``cfg`` runs (its ``tuned_for``)."""
-    from ..tuning.params_file import read_params, tuned_for_warning
+    from ..io.params_file import read_params, tuned_for_warning
 
     running = {
         "formulation": cfg.formulation,
@@ -298,7 +300,7 @@ def _parse_settings(items: list[str], settings: Any, example: str | None = None)
     """``--set horizon=2 --set q_yrt=1e4`` -> fields of the example's settings, each
     within the tuned-parameters file's bounds (a factor 1e6 of the default, the
     horizon's 10 s of prediction)."""
-    from ..tuning.params_file import check_settings_bounds
+    from ..io.params_file import check_settings_bounds
 
     out: dict[str, Any] = {}
     for item in items:
@@ -370,7 +372,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def add_simulate_commands(sub: Any) -> None:
     """Register ``ampc simulate`` and ``ampc demo`` on the ``ampc`` sub-parsers."""
-    from ..closed_loop import FORMULATIONS
+    from ..closed_loop import loop_formulations
+    from ..formulations import DEFAULT_FORMULATION
     from ..vehicle import SCENARIOS
 
     p = sub.add_parser(
@@ -382,8 +385,8 @@ def add_simulate_commands(sub: Any) -> None:
     p.add_argument("scenario", help="the manoeuvre: " + ", ".join(sorted(SCENARIOS)))
     p.add_argument(
         "--formulation",
-        choices=FORMULATIONS,
-        default="local_explicit",
+        choices=loop_formulations(),
+        default=DEFAULT_FORMULATION,
         help="the controller: Local Explicit (the paper's Formulation 3), Fully "
         "Distributed (1), Virtual Center Node (2), the integrated MPC, or none (the "
         "driver alone) (default: local_explicit)",
@@ -424,12 +427,6 @@ def add_simulate_commands(sub: Any) -> None:
         help="eps_s of the stopping rule, squared, Nm^2 (default: 1)",
     )
     p.add_argument(
-        "--max-iter",
-        type=arg_type(at_least_one, int),
-        default=None,
-        help="the controller's iteration cap (default: 200)",
-    )
-    p.add_argument(
         "--rho-scale",
         default=None,
         metavar="S[,S]",
@@ -440,13 +437,6 @@ def add_simulate_commands(sub: Any) -> None:
         "cruise and 0.3,3 for stability, for Formulations 1 and 2 1)",
     )
     p.add_argument(
-        "--relaxation",
-        type=arg_type(over_relaxation),
-        default=None,
-        help="ADMM over-relaxation in (0, 2) for the controller and the integrated MPC; "
-        "1 is the paper's iteration (default: the example's tuned value, 1.5)",
-    )
-    p.add_argument(
         "--warm-shift",
         type=int,
         choices=(0, 1),
@@ -454,13 +444,13 @@ def add_simulate_commands(sub: Any) -> None:
         help="warm start: 1 shifts the previous iterate one step along the horizon, "
         "0 holds it (default: the example's tuned value, 1 for cruise, 0 for stability)",
     )
-    p.add_argument(
-        "--anderson",
-        type=int,
-        choices=(0, 1, 2, 3),
-        default=None,
-        help="Anderson acceleration memory for the controller and the integrated MPC; "
+    add_solver_flags(
+        p,
+        relaxation="ADMM over-relaxation in (0, 2) for the controller and the integrated "
+        "MPC; 1 is the paper's iteration (default: the example's tuned value, 1.5)",
+        anderson="Anderson acceleration memory for the controller and the integrated MPC; "
         "0 is plain ADMM, the paper (default: the example's value, 3)",
+        max_iter="the controller's iteration cap (default: 200)",
     )
     p.add_argument(
         "--integrated-rho-scale",
@@ -469,7 +459,7 @@ def add_simulate_commands(sub: Any) -> None:
         help="factor on the integrated MPC's optimal rho (controller and r_time replay) "
         "(default: the example's tuned value, 0.3 for cruise, 1.2 for stability)",
     )
-    p.add_argument("--params", metavar="FILE", default=None, help=PARAMS_HELP)
+    add_params_flag(p)
     p.add_argument(
         "--set",
         action="append",
@@ -508,15 +498,9 @@ def add_simulate_commands(sub: Any) -> None:
         default=3,
         help="timing repeats per replayed step (default: 3)",
     )
-    p.add_argument(
-        "--float32",
-        action="store_true",
-        help="simulate in float32 instead of float64 (default: float64)",
+    add_output_flags(
+        p, float32="simulate", quiet="no progress bar (default: a bar on a terminal)", out="out"
     )
-    p.add_argument(
-        "--quiet", action="store_true", help="no progress bar (default: a bar on a terminal)"
-    )
-    p.add_argument("--out", default="out", help="output directory (default: out)")
     p.set_defaults(func=cmd_simulate)
 
     d = sub.add_parser(

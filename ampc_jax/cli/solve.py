@@ -12,11 +12,13 @@ from typing import Any
 import numpy as np
 
 from .args import (
+    add_output_flags,
+    add_params_flag,
+    add_solver_flags,
     arg_type,
-    at_least_one,
     fail,
     flag_error,
-    over_relaxation,
+    non_negative_finite,
     positive_finite,
     warnings_as_lines,
 )
@@ -40,11 +42,6 @@ _FLAGS = {
     "tol_dual": "--tol",
     "tol_rel": "--tol-rel",
 }
-
-
-def _non_negative_finite(value: float) -> None:
-    if not (np.isfinite(value) and value >= 0):
-        raise ValueError(f"value: expected a finite number >= 0, got {value!r}")
 
 
 def _resolve_problem(path: str) -> Path:
@@ -127,7 +124,7 @@ def _params_file(path: str | None) -> tuple[tuple[float, ...] | None, float | No
     apply to a problem file."""
     if path is None:
         return None, None, None
-    from ..tuning.params_file import read_params
+    from ..io.params_file import read_params
 
     try:
         tuned = read_params(path)
@@ -151,16 +148,17 @@ def _timed(fn: Any, *args: Any, repeats: int = 7) -> tuple[Any, float]:
     return res, float(np.median(times))
 
 
-_DECOMPOSED = ("local_explicit", "fully_distributed", "virtual_center")
-"""The formulations that decompose the problem (``--solver`` is for the integrated one)."""
-
-
 def _ignored(args: argparse.Namespace) -> list[tuple[str, list[str]]]:
-    """(cause, the flags given that it makes unused), one entry per cause."""
+    """(cause, the flags given that it makes unused), one entry per cause
+    (``--solver`` is for a formulation that solves the problem whole,
+    ``info.decomposed`` False)."""
+    from ..formulations import formulation_info
+
+    decomposed = formulation_info(args.formulation).decomposed
     out: list[tuple[str, list[str]]] = []
-    if args.formulation in _DECOMPOSED and args.solver is not None:
+    if decomposed and args.solver is not None:
         out.append((f"--formulation {args.formulation}", ["--solver"]))
-    reference = args.formulation == "integrated" and args.solver in (None, "clarabel", "osqp")
+    reference = not decomposed and args.solver in (None, "clarabel", "osqp")
     if reference:
         given = [
             flag
@@ -190,11 +188,13 @@ def cmd_solve(args: argparse.Namespace) -> int:
         jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
-    from ..formulations import FORMULATIONS
+    from ..formulations import formulation, formulation_info, formulation_names
     from ..problem import Problem, ProblemError, merged_data, merged_topology
     from ..reference import solve_reference
     from ..results import Status, status_message, status_name, usable
 
+    info = formulation_info(args.formulation)
+    with_file = " or ".join(formulation_names(state_file=True))
     path = _resolve_problem(args.problem)
     if not path.exists():
         shipped = ", ".join(sorted(x.stem for x in EXAMPLES.glob("*.json")))
@@ -216,7 +216,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
     )
     anderson = 0 if args.anderson is None else args.anderson
     if args.params is not None:
-        from ..tuning.params_file import read_params, tuned_for_warning
+        from ..io.params_file import read_params, tuned_for_warning
 
         running = {
             "formulation": args.formulation,
@@ -237,14 +237,15 @@ def cmd_solve(args: argparse.Namespace) -> int:
         tol = args.tol
         compile_s = 0.0
         solver: Any = None
-        if args.formulation in _DECOMPOSED or args.solver == "jax":
-            if args.formulation != "local_explicit" and args.warm_start:
-                return fail("--warm-start: applies to --formulation local_explicit only")
-            if args.formulation == "integrated" and len(scales) != 1:
+        form: Any = None  # the formulation (solver, unless a learned start wraps it)
+        if info.decomposed or args.solver == "jax":
+            if not info.state_file and args.warm_start:
+                return fail(f"--warm-start: applies to --formulation {with_file} only")
+            if info.rho == "one" and len(scales) != 1:
                 return fail("--rho-scale: the integrated problem has one objective; give one value")
-            kind = FORMULATIONS[args.formulation]
             try:
-                solver = kind(
+                form = solver = formulation(
+                    args.formulation,
                     T,
                     max_iter=max_iter,
                     anderson=anderson,
@@ -252,7 +253,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
                 )
             except ProblemError as e:  # the topology does not suit the formulation
                 return fail(f"{path}: {e}")
-            if file_start is not None and args.formulation == "local_explicit":
+            if file_start is not None and info.learned_start:
                 from ..admm.learned_start import LearnedStart
 
                 try:
@@ -261,9 +262,12 @@ def cmd_solve(args: argparse.Namespace) -> int:
                 except ValueError as e:
                     return fail(f"--params {args.params}: {e}")
             elif file_start is not None:
+                starts = " or ".join(
+                    formulation_info(n).label for n in formulation_names(learned_start=True)
+                )
                 print(
                     f"ampc: --params {args.params}: warm_start ignored by --formulation "
-                    f"{args.formulation} (it starts Local Explicit)",
+                    f"{args.formulation} (it starts {starts})",
                     file=sys.stderr,
                 )
             try:
@@ -280,21 +284,23 @@ def cmd_solve(args: argparse.Namespace) -> int:
                 return fail(flag_error(e, {**_FLAGS, "rho": rho_flag}))
             if args.rho is None:
                 check = problem.data(_check_dtype(args))
-                if args.formulation in _DECOMPOSED:  # their automatic rho needs H_j^-1
+                if info.decomposed:  # their automatic rho needs H_j^-1
                     _check_definite_hessians(T, check)
-                elif args.formulation == "integrated":
+                else:
                     _check_definite_hessians(merged_topology(T), merged_data(check))
-            warm = _warm_state(args.warm_start, solver, dtype) if args.warm_start else None
+            warm = _warm_state(args.warm_start, form, dtype) if args.warm_start else None
             fn = jax.jit(solver.solve)
             t0 = time.perf_counter()
             compiled = fn.lower(data, params, warm).compile()
             compile_s = time.perf_counter() - t0
             res, solve_s = _timed(compiled, data, params, warm)
-            names = T.objective_names if args.formulation in _DECOMPOSED else ("integrated",)
+            names = (
+                T.objective_names if info.rho == "objective" else merged_topology(T).objective_names
+            )
             rho_out = {n: float(r) for n, r in zip(names, np.asarray(res.rho), strict=True)}
         else:
             if args.warm_start:
-                return fail("--warm-start: applies to --formulation local_explicit only")
+                return fail(f"--warm-start: applies to --formulation {with_file} only")
             res = solve_reference(T, data, args.solver or "clarabel", eps=min(tol, 1e-6))
             solve_s = float(res.stats.solve_time)
             rho_out = {}
@@ -334,18 +340,18 @@ def cmd_solve(args: argparse.Namespace) -> int:
             f"{float(cert.bty):.3g} < 0 (the certificate is in the JSON output)",
             file=sys.stderr,
         )
-    if args.formulation == "local_explicit":
+    if info.state_file and form is not None:
         st = res.state
         out["warm_state"] = {
-            "U": [np.asarray(x).tolist() for x in solver.local_inputs(st)],
+            "U": [np.asarray(x).tolist() for x in form.local_inputs(st)],
             "Z": np.asarray(st.Z).tolist(),
-            "gamma": [np.asarray(x).tolist() for x in solver.multipliers(st)],
+            "gamma": [np.asarray(x).tolist() for x in form.multipliers(st)],
         }
     ok = usable(int(res.status)) and bool(np.all(np.isfinite(u)))
     violation = _violation(data, u) if ok else float("nan")
     out["constraint_violation"] = violation
     if ok and out["gap"] is not None:
-        if args.formulation in _DECOMPOSED and not _separable(T, data):
+        if info.decomposed and not _separable(T, data):
             print(
                 "ampc: the objectives' agent groups leave out agents that move their "
                 "outputs: the gap bounds the distance to the decomposed problem's optimum, "
@@ -527,6 +533,8 @@ def _print_table(out: dict[str, Any], T: Any) -> None:
 
 def add_solve_command(sub: Any) -> None:
     """Register ``ampc solve`` on the ``ampc`` sub-parsers."""
+    from ..formulations import DEFAULT_FORMULATION, formulation_names
+
     p = sub.add_parser(
         "solve",
         help="solve one MPC step of a JSON problem file",
@@ -539,8 +547,8 @@ def add_solve_command(sub: Any) -> None:
     )
     p.add_argument(
         "--formulation",
-        choices=["local_explicit", "fully_distributed", "virtual_center", "integrated"],
-        default="local_explicit",
+        choices=list(formulation_names()),
+        default=DEFAULT_FORMULATION,
         help="Local Explicit (the paper's Formulation 3), Fully Distributed (Formulation "
         "1), Virtual Center Node (Formulation 2), or the integrated MPC "
         "(default: local_explicit)",
@@ -569,27 +577,18 @@ def add_solve_command(sub: Any) -> None:
         help="factor(s) on the 'auto' rho: one value, or one per "
         "objective comma-separated (default: 1)",
     )
-    p.add_argument(
-        "--relaxation",
-        type=arg_type(over_relaxation),
-        default=None,
-        help="ADMM over-relaxation alpha in (0, 2); 1 is the paper's iteration (default: 1)",
+    add_solver_flags(
+        p,
+        relaxation="ADMM over-relaxation alpha in (0, 2); 1 is the paper's iteration (default: 1)",
+        anderson="Anderson acceleration memory of the ADMM iteration; 0 is the paper's "
+        "plain iteration (default: 0)",
+        max_iter=f"iteration cap (default: {MAX_ITER_DEFAULT})",
     )
-    p.add_argument(
-        "--params",
-        metavar="FILE",
-        default=None,
-        help="a tuned-parameters file (ampc tune's params.json): its solver.rho_scale and "
+    add_params_flag(
+        p,
+        "a tuned-parameters file (ampc tune's params.json): its solver.rho_scale and "
         "solver.relaxation are used; --rho-scale and --relaxation given here win over it "
         "(default: none)",
-    )
-    p.add_argument(
-        "--anderson",
-        type=int,
-        choices=(0, 1, 2, 3),
-        default=None,
-        help="Anderson acceleration memory of the ADMM iteration; 0 is the paper's "
-        "plain iteration (default: 0)",
     )
     p.add_argument(
         "--tol",
@@ -600,18 +599,12 @@ def add_solve_command(sub: Any) -> None:
     )
     p.add_argument(
         "--tol-rel",
-        type=arg_type(_non_negative_finite),
+        type=arg_type(non_negative_finite),
         default=0.0,
         help="relative tolerance eps_rel of the stopping rule (after OSQP): a residual "
         "may also be eps_rel times the size of the iterate and right-hand sides it "
         "compares; the result's duality gap (JSON 'gap', 'error_bound') says how close "
         "the inputs are (default: 0, the absolute rule alone)",
-    )
-    p.add_argument(
-        "--max-iter",
-        type=arg_type(at_least_one, int),
-        default=None,
-        help=f"iteration cap (default: {MAX_ITER_DEFAULT})",
     )
     p.add_argument(
         "--warm-start",
@@ -620,10 +613,6 @@ def add_solve_command(sub: Any) -> None:
         help="a previous --json result of this problem to shift one step and start "
         "from (default: cold start)",
     )
-    p.add_argument(
-        "--float32",
-        action="store_true",
-        help="solve in float32 instead of float64 (default: float64)",
-    )
+    add_output_flags(p, float32="solve")
     p.add_argument("--json", action="store_true", help="print one JSON object (default: a table)")
     p.set_defaults(func=cmd_solve)

@@ -8,12 +8,13 @@ import sys
 from typing import Any
 
 from .args import (
+    add_output_flags,
+    add_solver_flags,
     arg_type,
     at_least_one,
     fail,
     flag_error,
     output_dir,
-    over_relaxation,
     positive_finite,
 )
 
@@ -192,7 +193,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 def add_sweep_command(sub: Any) -> None:
     """Register ``ampc sweep``."""
-    from ..formulations import FORMULATIONS
+    from ..formulations import DEFAULT_FORMULATION, formulation_names
 
     p = sub.add_parser(
         "sweep",
@@ -225,8 +226,8 @@ def add_sweep_command(sub: Any) -> None:
     )
     p.add_argument(
         "--formulation",
-        default="local_explicit",
-        choices=sorted(FORMULATIONS),
+        default=DEFAULT_FORMULATION,
+        choices=sorted(formulation_names()),
         help="formulation (default: local_explicit)",
     )
     p.add_argument("--seed", type=int, default=0, help="the family's seed (default: 0)")
@@ -236,26 +237,14 @@ def add_sweep_command(sub: Any) -> None:
         default=None,
         help="eps_r = eps_s of eq.Convergence (default: 1 Nm^2 for the vehicle families, 1e-6 otherwise)",
     )
-    p.add_argument(
-        "--relaxation",
-        type=arg_type(over_relaxation),
-        default=None,
-        help="over-relaxation in (0, 2) (default: the family's example's, as simulate runs "
-        "it: 1.5 for cruise and stability; 1.0, the paper's, for generated problems)",
-    )
-    p.add_argument(
-        "--anderson",
-        type=int,
-        default=None,
-        choices=range(4),
-        help="Anderson memory (default: the family's example's, as simulate runs it: 3 "
+    add_solver_flags(
+        p,
+        relaxation="over-relaxation in (0, 2) (default: the family's example's, as simulate "
+        "runs it: 1.5 for cruise and stability; 1.0, the paper's, for generated problems)",
+        anderson="Anderson memory (default: the family's example's, as simulate runs it: 3 "
         "for cruise and stability; 0 for generated problems)",
-    )
-    p.add_argument(
-        "--max-iter",
-        type=arg_type(at_least_one, int),
-        default=500,
-        help="iteration cap (default: 500)",
+        max_iter="iteration cap (default: 500)",
+        max_iter_default=500,
     )
     p.add_argument(
         "--horizon",
@@ -285,7 +274,6 @@ def add_sweep_command(sub: Any) -> None:
         default=None,
         help="seconds of each closed-loop run of a loop family (default: the scenario's)",
     )
-    p.add_argument("--float32", action="store_true", help="solve in float32 (default: float64)")
     p.add_argument(
         "--no-compaction",
         action="store_true",
@@ -312,6 +300,7 @@ def add_sweep_command(sub: Any) -> None:
         help="host:port of the jax.distributed coordinator (default: none)",
     )
     p.add_argument("--no-figures", action="store_true", help="skip the figures (default: draw)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar (default: on a terminal)")
-    p.add_argument("--out", default="sweep", help="output directory (default: sweep)")
+    add_output_flags(
+        p, float32="solve", quiet="no progress bar (default: on a terminal)", out="sweep"
+    )
     p.set_defaults(func=cmd_sweep)

@@ -13,7 +13,16 @@ import json
 from pathlib import Path
 from typing import Any
 
-from .args import arg_type, at_least_one, fail, flag_error, output_dir, positive_finite
+from .args import (
+    add_output_flags,
+    add_solver_flags,
+    arg_type,
+    at_least_one,
+    fail,
+    flag_error,
+    output_dir,
+    positive_finite,
+)
 
 __all__ = ["add_tune_command", "cmd_tune"]
 
@@ -64,7 +73,7 @@ def _loss_figure(history: list[dict[str, Any]], path: Path, title: str) -> None:
 
 
 def _solver(args: argparse.Namespace, out: Path) -> int:
-    from ..tuning.params_file import write_params
+    from ..io.params_file import write_params
     from ..tuning.solver import evaluation_table, tune_solver
 
     try:
@@ -126,8 +135,8 @@ def _solver(args: argparse.Namespace, out: Path) -> int:
 
 
 def _weights(args: argparse.Namespace, out: Path) -> int:
+    from ..io.params_file import write_params
     from ..sweep.families import family
-    from ..tuning.params_file import write_params
 
     try:
         from ..tuning.weights import tune_weights
@@ -186,7 +195,7 @@ def _weights(args: argparse.Namespace, out: Path) -> int:
 
 
 def _warm_start(args: argparse.Namespace, out: Path) -> int:
-    from ..tuning.params_file import write_params
+    from ..io.params_file import write_params
     from ..tuning.warm_start import start_table, tune_warm_start
 
     try:
@@ -439,12 +448,9 @@ def add_tune_command(sub: Any) -> None:
         "geometric mean; residual: the smooth fraction of the K iterations above the "
         "tolerance (default: error)",
     )
-    p.add_argument(
-        "--anderson",
-        type=int,
-        choices=(0, 1, 2, 3),
-        default=None,
-        help="Anderson memory of the solver tuned and evaluated (default: the family's "
+    add_solver_flags(
+        p,
+        anderson="Anderson memory of the solver tuned and evaluated (default: the family's "
         "example's, as simulate runs it: 3 for cruise and stability; 0 for generated "
         "problems and for --loss residual, which unrolls plain ADMM)",
     )
@@ -455,9 +461,10 @@ def add_tune_command(sub: Any) -> None:
         help="eps_r = eps_s of the held-out evaluation, squared, in the rows' units "
         "(default: 1, the vehicle examples' closed-loop tolerance in Nm^2)",
     )
-    p.add_argument(
-        "--float32", action="store_true", help="tune and evaluate in float32 (default: float64)"
+    add_output_flags(
+        p,
+        float32="tune and evaluate",
+        quiet="no progress bar (default: shown)",
+        out_required=True,
     )
-    p.add_argument("--quiet", action="store_true", help="no progress bar (default: shown)")
-    p.add_argument("--out", required=True, help="output directory (required)")
     p.set_defaults(func=cmd_tune)

@@ -15,8 +15,8 @@ its metrics and its timing replay (section "Experimental Studies").
 
 from .config import (
     DURATION_MAX,
-    FORMULATIONS,
     MU_MAX,
+    NO_MPC,
     PAPER_SOLVER_OPTIONS,
     ControllerParams,
     LoopParams,
@@ -25,6 +25,7 @@ from .config import (
     check_duration,
     check_mu,
     config_for,
+    loop_formulations,
     with_settings,
 )
 from .controller import Controller, ControllerState, DriverInputs, StepInfo, controller_for
@@ -34,10 +35,18 @@ from .metrics import SimResult
 from .shadow import IntegratedShadow, shadow_for
 from .timing import replay_timing
 
+
+def __getattr__(name: str) -> object:
+    # FORMULATIONS: the former constant, now read from the registry when asked
+    if name == "FORMULATIONS":
+        return loop_formulations()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 __all__ = [
     "DURATION_MAX",
-    "FORMULATIONS",
     "MU_MAX",
+    "NO_MPC",
     "PAPER_SOLVER_OPTIONS",
     "Controller",
     "ControllerParams",
@@ -55,6 +64,7 @@ __all__ = [
     "check_mu",
     "config_for",
     "controller_for",
+    "loop_formulations",
     "replay_timing",
     "run_closed_loop",
     "shadow_for",

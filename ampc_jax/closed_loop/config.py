@@ -28,8 +28,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..admm.acceleration import anderson_memory
+from ..admm.core import FormulationInfo
 from ..admm.learned_start import StartModel
 from ..admm.params import SolverParams, solver_params
+from ..formulations.registry import DEFAULT_FORMULATION, formulation_info, formulation_names
+from ..validation import check_count, check_flag, check_positive, check_relaxation
 from ..vehicle.examples import VehicleExample, example
 from ..vehicle.manoeuvres import DriverParams, ScenarioSpec, scenario
 from ..vehicle.models import ExampleSettings
@@ -37,9 +40,8 @@ from ..vehicle.params import CONTROL_DT, VehicleParams
 
 __all__ = [
     "DURATION_MAX",
-    "CONSENSUS",
-    "FORMULATIONS",
     "MU_MAX",
+    "NO_MPC",
     "PAPER_SOLVER_OPTIONS",
     "SOLVER_OPTIONS",
     "ControllerParams",
@@ -50,17 +52,27 @@ __all__ = [
     "check_mu",
     "check_steps",
     "config_for",
+    "loop_formulations",
     "with_settings",
 ]
 
-FORMULATIONS = ("local_explicit", "fully_distributed", "virtual_center", "integrated", "none")
-"""Controllers of the closed loop: Local Explicit (Formulation 3), Fully
-Distributed (1), Virtual Center Node (2), IntegratedADMM, or no MPC (the
-example's driver alone)."""
+NO_MPC = "none"
+"""The closed loop's controller choice for no MPC (the example's driver alone)."""
 
-CONSENSUS = ("fully_distributed", "virtual_center")
-"""The formulations whose rho_j is a factor on sqrt(lambda_min lambda_max) of H_j
-(:mod:`ampc_jax.formulations.consensus`), not on eq.opt_ro's rho*."""
+
+def loop_formulations() -> tuple[str, ...]:
+    """The controllers a closed loop may run: every registered formulation that
+    serves closed loops (:func:`~ampc_jax.formulations.formulation_names`), then
+    :data:`NO_MPC`."""
+    return (*formulation_names(closed_loop=True), NO_MPC)
+
+
+def __getattr__(name: str) -> Any:
+    # FORMULATIONS: the former constant, now read from the registry when asked
+    if name == "FORMULATIONS":
+        return loop_formulations()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 DURATION_MAX = 3600.0
 """Longest simulated time (s) one run accepts: 72,000 control steps, whose log
@@ -139,21 +151,7 @@ def check_mu(mu: Any, name: str = "mu") -> Any:
 
 def check_steps(n_steps: Any, name: str = "n_steps") -> int:
     """A number of control steps: an integer >= 1 (ValueError naming ``name``)."""
-    return _positive_int(name, n_steps)
-
-
-def _positive_float(name: str, v: Any) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-        raise ValueError(f"{name}: expected a positive finite number, got {v!r}")
-    if not (np.isfinite(v) and v > 0):
-        raise ValueError(f"{name}: expected a positive finite number, got {v!r}")
-    return float(v)
-
-
-def _positive_int(name: str, v: Any) -> int:
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-        raise ValueError(f"{name}: expected an integer >= 1, got {v!r}")
-    return int(v)
+    return check_count(n_steps, name)
 
 
 class ControllerParams(NamedTuple):
@@ -178,10 +176,11 @@ class SimConfig:
     Parameters
     ----------
     example : a registered vehicle example's name (``"cruise"`` or ``"stability"``).
-    formulation : ``"local_explicit"`` (default), ``"fully_distributed"``,
-        ``"virtual_center"`` (the paper's Formulations 1 and 2), ``"integrated"``
-        (IntegratedADMM as the controller) or ``"none"`` (no MPC: the example's
-        driver alone).
+    formulation : a registered formulation that serves closed loops
+        (:func:`loop_formulations`: ``"local_explicit"``, the default,
+        ``"fully_distributed"``, ``"virtual_center"`` (the paper's Formulations
+        1 and 2), ``"integrated"`` (IntegratedADMM as the controller)) or
+        ``"none"`` (no MPC: the example's driver alone).
     disabled : objectives left out (``--disable``); the agents are the union of
         the enabled objectives' groups, the others get zero input.
     settings : the example's settings (weights, bounds, horizon N_p; default
@@ -202,16 +201,18 @@ class SimConfig:
     warm_shift : 1 shifts the previous iterate one step along the horizon, 0
         holds it (controller, shadow and r_time replay alike). ``None``: the
         example's tuned default.
-    rho_scale : factor(s) on eq.opt_ro's rho_j* of Local Explicit (for Formulations
-        1 and 2: on sqrt(lambda_min lambda_max) of H_j), a float or one per
-        objective of the *example* in its order; with ``disabled`` objectives
-        only the enabled entries are used. ``None``: the example's default for
-        the formulation (``consensus_rho_scale`` for Formulations 1 and 2).
+    rho_scale : factor(s) on eq.opt_ro's rho_j* of Local Explicit (a formulation
+        whose ``info.rho_basis`` is ``"hessian"``, Formulations 1 and 2: on
+        sqrt(lambda_min lambda_max) of H_j), a float or one per objective of
+        the *example* in its order; with ``disabled`` objectives only the
+        enabled entries are used. ``None``: the example's default for the
+        formulation (``consensus_rho_scale`` for the ``"hessian"`` basis).
     relaxation : over-relaxation alpha in (0, 2) (1.0 is the paper's iteration),
         used by Local Explicit *and* the IntegratedADMM it is compared with, so
         that r_time compares like with like. ``None``: the example's default.
-    integrated_rho_scale : factor on rho* of the IntegratedADMM (controller
-        ``"integrated"`` and r_time replay), tuned for it by the same sweep.
+    integrated_rho_scale : factor on rho* of the IntegratedADMM (the controller of a
+        one-rho formulation, ``"integrated"``, and r_time replay), tuned for it
+        by the same sweep.
     anderson : Anderson memory 0..3 of Local Explicit and the IntegratedADMM it
         is compared with (0 is plain ADMM); the shadow stays plain.
     shadow : solve the integrated MPC in shadow, for e_sub (eq.suboptimality).
@@ -225,8 +226,9 @@ class SimConfig:
         ``warm_start``) the controller starts each solve from: a ``"loop"``
         network corrects the previous step's iterate, a ``"step"`` network
         replaces it with its prediction from the step's data. ``None``
-        (default): the previous step's iterate (``warm_start``). Local
-        Explicit only.
+        (default): the previous step's iterate (``warm_start``). Only for a
+        formulation that serves a learned start (``info.learned_start``: Local
+        Explicit).
     actuators : ``"ideal"`` (default: the plant gets the controller's torques) or
         ``"bridge"`` (the CAN bridge's limiter between them: the wheels' ranges
         and rates of :data:`~ampc_jax.vehicle.actuators.ACTUATORS` on the 2 Nm
@@ -239,7 +241,7 @@ class SimConfig:
     """
 
     example: str = "cruise"
-    formulation: str = "local_explicit"
+    formulation: str = DEFAULT_FORMULATION
     disabled: tuple[str, ...] = ()
     settings: Any = None
     tol_primal: float = 1.0
@@ -265,9 +267,9 @@ class SimConfig:
 
     def __post_init__(self) -> None:
         ex = example(self.example)
-        if self.formulation not in FORMULATIONS:
+        if self.formulation not in loop_formulations():
             raise ValueError(
-                f"formulation: expected one of {FORMULATIONS}, got {self.formulation!r}"
+                f"formulation: expected one of {loop_formulations()}, got {self.formulation!r}"
             )
         if self.settings is None:
             object.__setattr__(self, "settings", ex.settings_type())
@@ -278,9 +280,9 @@ class SimConfig:
             )
         self.settings.validate()
         for name in ("tol_primal", "tol_dual", "shadow_tol_primal", "shadow_tol_dual"):
-            object.__setattr__(self, name, _positive_float(name, getattr(self, name)))
+            object.__setattr__(self, name, check_positive(getattr(self, name), name))
         for name in ("max_iter", "shadow_max_iter"):
-            object.__setattr__(self, name, _positive_int(name, getattr(self, name)))
+            object.__setattr__(self, name, check_count(getattr(self, name), name))
         if self.fixed_iterations is not None:
             fixed = self.fixed_iterations
             if isinstance(fixed, bool) or not isinstance(fixed, (int, np.integer)) or fixed < 1:
@@ -290,9 +292,7 @@ class SimConfig:
                 )
             object.__setattr__(self, "fixed_iterations", int(fixed))
         for name in ("warm_start", "shadow"):
-            if not isinstance(getattr(self, name), (bool, np.bool_)):
-                raise ValueError(f"{name}: expected True or False, got {getattr(self, name)!r}")
-            object.__setattr__(self, name, bool(getattr(self, name)))
+            object.__setattr__(self, name, check_flag(getattr(self, name), name))
         object.__setattr__(self, "disabled", tuple(self.disabled))
         for name in self.disabled:
             if name not in ex.objectives:
@@ -304,7 +304,7 @@ class SimConfig:
             raise ValueError(
                 f"actuators: expected one of {ACTUATOR_MODELS}, got {self.actuators!r}"
             )
-        if not self.enabled and self.formulation != "none":
+        if not self.enabled and self.mpc:
             raise ValueError("disable: every objective is disabled; use formulation 'none'")
         if self.learned_start is not None:
             if not isinstance(self.learned_start, StartModel):
@@ -312,16 +312,17 @@ class SimConfig:
                     f"learned_start: expected a StartModel or None, got "
                     f"{type(self.learned_start).__name__}"
                 )
-            if self.formulation != "local_explicit":
+            if not self.mpc or not formulation_info(self.formulation).learned_start:
                 raise ValueError(
-                    f"learned_start: a learned start is trained for Local Explicit, not "
-                    f"formulation {self.formulation!r}"
+                    f"learned_start: formulation {self.formulation!r} serves no learned start "
+                    f"(those that do: {list(formulation_names(learned_start=True))})"
                 )
         self._resolve_solver_options(ex)
 
     def _resolve_solver_options(self, ex: VehicleExample) -> None:
         """Fill ``None`` solver options from the example's defaults and validate them all."""
-        if self.rho_scale is None and self.formulation in CONSENSUS:
+        info = self.formulation_info
+        if self.rho_scale is None and info is not None and info.rho_basis == "hessian":
             object.__setattr__(
                 self, "rho_scale", ex.solver_defaults.get("consensus_rho_scale", 1.0)
             )
@@ -351,14 +352,20 @@ class SimConfig:
             self, "rho_scale", float(arr[0]) if arr.size == 1 else tuple(float(x) for x in arr)
         )
         for name in ("integrated_rho_scale", "shadow_rho_scale"):
-            object.__setattr__(self, name, _positive_float(name, getattr(self, name)))
+            object.__setattr__(self, name, check_positive(getattr(self, name), name))
         for name in ("relaxation", "shadow_relaxation"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)):
-                raise ValueError(f"{name}: expected a float in (0, 2), got {v!r}")
-            if not 0.0 < float(v) < 2.0:
-                raise ValueError(f"{name}: expected a value in (0, 2), got {v!r}")
-            object.__setattr__(self, name, float(v))
+            object.__setattr__(self, name, check_relaxation(getattr(self, name), name))
+
+    # -- the controller ---------------------------------------------------------------
+    @property
+    def mpc(self) -> bool:
+        """Whether an MPC runs (every formulation but :data:`NO_MPC`)."""
+        return self.formulation != NO_MPC
+
+    @property
+    def formulation_info(self) -> FormulationInfo | None:
+        """The controller's :class:`~ampc_jax.admm.core.FormulationInfo` (None without MPC)."""
+        return formulation_info(self.formulation) if self.mpc else None
 
     # -- the example's structure -------------------------------------------------------
     @property
@@ -401,11 +408,12 @@ class SimConfig:
         The shadow's tolerances are floored at 1e-4 Nm^2 in float32 (its
         resolution at these torques)."""
         dt = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
-        if self.formulation == "integrated":
-            rho = self.integrated_rho_scale
-        else:  # no enabled objective: formulation "none", no solver runs
+        info = self.formulation_info
+        if info is not None and info.rho == "one":  # the integrated problem's one rho
+            rho, n_rho = self.integrated_rho_scale, 1
+        else:  # no enabled objective: no MPC, no solver runs
             rho = self.enabled_rho_scale if self.enabled else 1.0
-        n_rho = 1 if self.formulation == "integrated" else max(1, len(self.enabled))
+            n_rho = max(1, len(self.enabled))
         controller = solver_params(
             n_rho,
             rho=rho,
@@ -446,7 +454,7 @@ def baseline_config(config: SimConfig) -> SimConfig:
     """
     base = config.vehicle_example.baseline()
     what = base["what"]
-    if base["formulation"] is None and config.formulation == "none":
+    if base["formulation"] is None and not config.mpc:
         raise ValueError(
             f"compare: this run has no MPC ({config.vehicle_example.no_mpc_label}): no baseline"
         )

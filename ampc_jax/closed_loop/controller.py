@@ -27,12 +27,18 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..admm.learned_start import LearnedStart, StartModel
-from ..admm.runners import check_iterations
 from ..admm.state import ADMMState
-from ..formulations import FORMULATIONS, Formulation, formulation
+from ..formulations import (
+    DEFAULT_FORMULATION,
+    Formulation,
+    check_formulation,
+    formulation,
+    formulation_names,
+)
 from ..problem.data import ProblemData, make_data
 from ..problem.topology import Topology
 from ..results import usable
+from ..validation import check_count
 from ..vehicle.examples import VehicleExample
 from ..vehicle.params import Measurement, VehicleParams
 from .config import ControllerParams, SimConfig
@@ -87,8 +93,9 @@ class Controller:
     enabled : its enabled objectives (example order); the agents are the union
         of their groups.
     horizon : N_p (must match the settings the step is given).
-    formulation : ``"local_explicit"`` (default), ``"fully_distributed"``,
-        ``"virtual_center"`` or ``"integrated"`` (:data:`~ampc_jax.formulations.FORMULATIONS`).
+    formulation : a registered formulation that serves closed loops
+        (``info.closed_loop``; default ``"local_explicit"``,
+        :func:`~ampc_jax.formulations.formulation_names`).
     max_iter, anderson : the solver's static options (defaults 200, 0).
     warm_start : start each step from the previous step's state (default True).
     warm_shift : 1 shifts that state one step along the horizon, 0 holds it.
@@ -112,7 +119,7 @@ class Controller:
     example: VehicleExample
     enabled: tuple[str, ...]
     horizon: int
-    formulation: str = "local_explicit"
+    formulation: str = DEFAULT_FORMULATION
     max_iter: int = 200
     anderson: int = 0
     warm_start: bool = True
@@ -122,11 +129,7 @@ class Controller:
     learned_start: StartModel | None = None
 
     def __post_init__(self) -> None:
-        if self.formulation not in FORMULATIONS:
-            raise ValueError(
-                f"formulation: the controller runs one of {sorted(FORMULATIONS)}, "
-                f"got {self.formulation!r}"
-            )
+        info = check_formulation(self.formulation, closed_loop=True)
         unknown = [o for o in self.enabled if o not in self.example.objectives]
         if unknown or not self.enabled:
             raise ValueError(
@@ -134,12 +137,13 @@ class Controller:
             )
         object.__setattr__(self, "enabled", tuple(self.enabled))
         if self.fixed_iterations is not None:
-            k = check_iterations(self.fixed_iterations, "fixed_iterations")
+            k = check_count(self.fixed_iterations, "fixed_iterations")
             object.__setattr__(self, "fixed_iterations", k)
         if self.learned_start is not None:
-            if self.formulation != "local_explicit":
+            if not info.learned_start:
                 raise ValueError(
-                    f"learned_start: trained for Local Explicit, not {self.formulation!r}"
+                    f"learned_start: formulation {self.formulation!r} serves no learned start "
+                    f"(those that do: {list(formulation_names(learned_start=True))})"
                 )
             why = self.learned_start.mismatch(self._formulation)
             if why is not None:
@@ -299,8 +303,8 @@ class Controller:
 
 def controller_for(config: SimConfig) -> Controller | None:
     """The static controller of ``config`` (its example, enabled objectives, horizon,
-    formulation and solver options), or None for ``formulation="none"``."""
-    if config.formulation == "none":
+    formulation and solver options), or None without MPC (``formulation="none"``)."""
+    if not config.mpc:
         return None
     return Controller(
         example=config.vehicle_example,

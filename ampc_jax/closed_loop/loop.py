@@ -364,7 +364,7 @@ def simulate(
     res = SimResult(
         log_np, config, spec.name, spec.focus, n * CONTROL_DT, wall, t_compile, first_run_time=first
     )
-    if timing and config.formulation != "none":
+    if timing and config.mpc:
         res.timing = replay_timing(config, log, repeats=repeats)
     return res
 

@@ -98,7 +98,7 @@ class SimResult:
         target = c.vehicle_example.slip_target(c.settings)
         slip_des = 0.15 if target is None else target  # the paper's S_x,des otherwise
         excess = np.maximum(rear - slip_des, 0.0)
-        active = c.formulation != "none"
+        active = c.mpc
         m: dict[str, Any] = {
             "scenario": self.scenario,
             "example": c.example,
@@ -193,7 +193,7 @@ class SimResult:
                 f"t = {float(lg.t[k]):g} s): the plant and the drivers model forward "
                 "driving only, so the run is not physical from there on"
             )
-        if c.formulation != "none":
+        if c.mpc:
             st = np.asarray(lg.status)
             n = len(st)
             capped = int(np.sum(st == 1))

@@ -53,7 +53,7 @@ def replay_timing(
     dict with (K,) arrays ``t_distributed``, ``t_integrated`` (s), ``r_time``
     and ``integrated_iterations``, ``distributed_iterations``.
     """
-    if config.formulation in ("integrated", "none"):
+    if not config.mpc or not config.formulation_info.decomposed:
         raise ValueError(
             "replay_timing compares a decomposed formulation with IntegratedADMM; "
             f"got formulation {config.formulation!r}"

@@ -83,13 +83,13 @@ from ..admm.linalg import block_diag, spd_inverse_dense
 from ..admm.local_qp import InnerState, LocalQP, factor, inner_rho, iterate
 from ..admm.params import SolverParams, as_params
 from ..admm.rho import RhoEstimates, extreme_eigenvalues, select_rho
-from ..admm.runners import check_iterations
 from ..admm.state import shift_horizon, warm_start
 from ..admm.stopping import select_dual_residual
 from ..problem.data import ProblemData
 from ..problem.errors import ProblemError
 from ..problem.topology import Topology
 from ..results import SolveResult, SolveStats, Status
+from ..validation import check_count
 
 __all__ = [
     "CONSENSUS_DUAL_RESIDUALS",
@@ -192,12 +192,15 @@ class ConsensusADMM(ADMMSolver):
 
     #: Formulation 2 (the input weights in the global step) when True.
     center = False
-    #: the paper's name of the formulation, for messages.
-    title = "consensus"
+
+    @property
+    def title(self) -> str:
+        """The paper's name of the formulation, for messages (``info.title``)."""
+        return "consensus ADMM" if self.info is None else self.info.title
 
     def __post_init__(self) -> None:
         for name in ("max_iter", "inner_iterations", "rho_iterations"):
-            object.__setattr__(self, name, check_iterations(getattr(self, name), name))
+            object.__setattr__(self, name, check_count(getattr(self, name), name))
         object.__setattr__(self, "anderson", anderson_memory(self.anderson))
         select_rho(self.rho_method, CONSENSUS_RHO_METHODS)
         select_dual_residual(self.dual_residual, CONSENSUS_DUAL_RESIDUALS)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ..admm.core import FormulationInfo
 from .consensus import ConsensusADMM
 
 __all__ = ["FullyDistributed"]
@@ -21,5 +22,13 @@ class FullyDistributed(ConsensusADMM):
     """Formulation 1, Fully Distributed: consensus ADMM with the input weights in
     the local QPs. Options and parameters: :class:`ConsensusADMM`."""
 
+    info = FormulationInfo(
+        name="fully_distributed",
+        title="Fully Distributed (Formulation 1)",
+        label="Fully Distributed",
+        rho="objective",
+        rho_basis="hessian",
+        decomposed=True,
+        closed_loop=True,
+    )
     center = False
-    title = "Fully Distributed (Formulation 1)"

@@ -13,7 +13,7 @@ import functools
 from dataclasses import dataclass
 from typing import Any
 
-from ..admm.core import ADMMSolver
+from ..admm.core import ADMMSolver, FormulationInfo
 from ..admm.params import SolverParams
 from ..admm.rho import RHO_STEPS
 from ..admm.state import ADMMState
@@ -39,6 +39,17 @@ class IntegratedADMM(ADMMSolver):
     objective): by default a factor on eq.opt_ro's rho* of the whole problem.
     ``max_iter`` defaults to 2000.
     """
+
+    info = FormulationInfo(
+        name="integrated",
+        title="the integrated MPC (ADMM)",
+        label="integrated MPC (ADMM)",
+        rho="one",
+        rho_basis="opt_ro",
+        decomposed=False,
+        batch_kkt="riccati",
+        closed_loop=True,
+    )
 
     topology: Topology
     max_iter: int = 2000

@@ -63,18 +63,19 @@ import numpy as np
 
 from ..admm import stopping as stop
 from ..admm.acceleration import anderson_memory
-from ..admm.core import ADMMSolver
+from ..admm.core import ADMMSolver, FormulationInfo
 from ..admm.costs import padded_costs
 from ..admm.kkt import KKT, KKT_SOLVES, select_kkt
 from ..admm.layout import padded_layout
+from ..admm.learned_start.multipliers import kkt_multipliers
 from ..admm.params import SolverParams, as_params
 from ..admm.rho import RHO_STEPS, RhoEstimates, eq_opt_ro_exact, eq_opt_ro_power, select_rho
-from ..admm.runners import check_iterations
 from ..admm.state import ADMMState, cold_state, shift_state, warm_start
 from ..admm.stopping import select_dual_residual
 from ..problem.data import ProblemData
 from ..problem.topology import Topology
 from ..results import SolveResult, SolveStats, Status
+from ..validation import check_count
 
 __all__ = ["DUAL_RESIDUALS", "RHO_METHODS", "LocalExplicit", "LocalSetup"]
 
@@ -133,10 +134,6 @@ class LocalSetup(NamedTuple):
     b2: Any
 
 
-def _int_at_least(name: str, value: Any, low: int) -> int:
-    return check_iterations(value, name, low)
-
-
 @dataclass(frozen=True)
 class LocalExplicit(ADMMSolver):
     """Local Explicit solver for one :class:`Topology`: its static options.
@@ -188,6 +185,19 @@ class LocalExplicit(ADMMSolver):
     serves every :class:`SolverParams` without recompiling.
     """
 
+    info = FormulationInfo(
+        name="local_explicit",
+        title="Local Explicit (Formulation 3)",
+        label="Local Explicit",
+        rho="objective",
+        rho_basis="opt_ro",
+        decomposed=True,
+        batch_kkt="riccati",
+        closed_loop=True,
+        learned_start=True,
+        state_file=True,
+    )
+
     topology: Topology
     max_iter: int = 500
     anderson: int = 0
@@ -197,10 +207,10 @@ class LocalExplicit(ADMMSolver):
     dual_residual: str = "slack"
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "max_iter", _int_at_least("max_iter", self.max_iter, 1))
+        object.__setattr__(self, "max_iter", check_count(self.max_iter, "max_iter"))
         object.__setattr__(self, "anderson", anderson_memory(self.anderson))
         object.__setattr__(
-            self, "rho_iterations", _int_at_least("rho_iterations", self.rho_iterations, 1)
+            self, "rho_iterations", check_count(self.rho_iterations, "rho_iterations")
         )
         if self.kkt not in KKT_SOLVES:
             raise ValueError(f"kkt: expected one of {KKT_SOLVES}, got {self.kkt!r}")
@@ -316,6 +326,17 @@ class LocalExplicit(ADMMSolver):
             " (ADMMState is in the solver's padded layout; build one from "
             "per-objective arrays with LocalExplicit.state_of)",
         )
+
+    def start_from_inputs(
+        self, setup: LocalSetup, data: ProblemData, u: Any, like: ADMMState
+    ) -> ADMMState:
+        """``like`` with Z = max(0, bbar - A_in u) (the rows' slack at u) and the
+        multipliers that make ``u`` a fixed point
+        (:func:`~ampc_jax.admm.learned_start.kkt_multipliers`): a learned
+        ``"step"`` start from its predicted inputs."""
+        Z = jnp.maximum(data.bin - u @ data.Ain.T, 0.0)
+        gamma = kkt_multipliers(self.topology, setup.hessian, setup.E, setup.Ain, u, Z, data.bin)
+        return like._replace(Z=Z.astype(like.Z.dtype), gamma=gamma.astype(like.gamma.dtype))
 
     # -- per-objective views of the padded state ------------------------------------
     def local_inputs(self, state: ADMMState) -> tuple:

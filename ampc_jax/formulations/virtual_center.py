@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ..admm.core import FormulationInfo
 from .consensus import ConsensusADMM
 
 __all__ = ["VirtualCenter"]
@@ -21,5 +22,13 @@ class VirtualCenter(ConsensusADMM):
     """Formulation 2, Virtual Center Node: consensus ADMM with the input weights in
     the global step. Options and parameters: :class:`ConsensusADMM`."""
 
+    info = FormulationInfo(
+        name="virtual_center",
+        title="Virtual Center Node (Formulation 2)",
+        label="Virtual Center Node",
+        rho="objective",
+        rho_basis="hessian",
+        decomposed=True,
+        closed_loop=True,
+    )
     center = True
-    title = "Virtual Center Node (Formulation 2)"

@@ -29,25 +29,23 @@ import numpy as np  # noqa: E402
 __all__ = ["convergence", "save", "vehicle_response", "wheel_torques", "yaw_error_comparison"]
 
 
-# the formulations' names as the paper writes them (legends show no class names)
-FORMULATION_NAMES = {
-    "local_explicit": "Local Explicit",
-    "fully_distributed": "Fully Distributed",
-    "virtual_center": "Virtual Center Node",
-    "integrated": "integrated MPC (ADMM)",
-}
-
-
 def _shade(ax: Any, res: Any) -> None:
     ax.axvspan(*res.focus, color="0.92", zorder=0, label="_focus")
 
 
+def _formulation_label(config: Any) -> str:
+    """The formulation's name as the paper writes it (legends show no class names)."""
+    return config.formulation_info.label if config.mpc else config.formulation
+
+
 def _label(res: Any) -> str:
+    from ..formulations import DEFAULT_FORMULATION
+
     c = res.config
-    if c.formulation == "none":
+    if not c.mpc:
         return c.vehicle_example.no_mpc_label
-    name = FORMULATION_NAMES.get(c.formulation, c.formulation)
-    return "+".join(c.enabled) + ("" if c.formulation == "local_explicit" else f" ({name})")
+    other = c.formulation != DEFAULT_FORMULATION
+    return "+".join(c.enabled) + (f" ({_formulation_label(c)})" if other else "")
 
 
 # the rear-slip panel's range for stability runs: the controlled runs stay
@@ -176,7 +174,7 @@ def wheel_torques(res: Any) -> Any:
     for a in axs:
         a.grid(alpha=0.3)
         a.legend(fontsize=8, ncol=5)
-    name = FORMULATION_NAMES.get(c.formulation, c.formulation)
+    name = _formulation_label(c)
     fig.suptitle(f"{res.scenario}: torque commands ({_label(res)}, {name})")
     return fig
 
@@ -228,8 +226,7 @@ def convergence(res: Any) -> Any:
                 transform=a.transAxes,
             )
     axs[1, 0].set_ylabel("e_sub (Nm)")
-    name = res.config.formulation
-    axs[1, 1].plot(lg.t, lg.iterations, lw=1, label=FORMULATION_NAMES.get(name, name))
+    axs[1, 1].plot(lg.t, lg.iterations, lw=1, label=_formulation_label(res.config))
     axs[1, 1].set_ylabel("iterations")
     if res.timing is not None:
         r = res.timing["r_time"]

@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from ..closed_loop.config import NO_MPC
+from ..formulations.registry import formulation_info
 from ..vehicle.params import WHEELS
 
 __all__ = [
@@ -117,7 +119,7 @@ def write_figures(results: list[Any], out: str | Path, stem: str = "") -> list[P
         figures.save(figures.vehicle_response(results), out / f"{stem}vehicle_response.png"),
         figures.save(figures.wheel_torques(main), out / f"{stem}wheel_torques.png"),
     ]
-    if main.config.formulation != "none":
+    if main.config.mpc:
         # without the shadow (--no-shadow) its e_sub panels say so
         paths.append(figures.save(figures.convergence(main), out / f"{stem}convergence.png"))
     if len(results) > 1:
@@ -137,14 +139,14 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
             "n/a" if v is None or (isinstance(v, float) and not np.isfinite(v)) else format(v, fmt)
         )
 
-    if m["formulation"] == "none":
+    if m["formulation"] == NO_MPC:
         lines.append(f"{m['scenario']} [none: {m.get('no_mpc', 'no MPC')}]")
     else:
         lines.append(
             f"{m['scenario']} [{m['formulation']}; {'+'.join(m['objectives'])}; "
             f"N_p={m['horizon']}; {'warm' if m['warm_start'] else 'cold'} start]"
         )
-        if m["formulation"] == "integrated":
+        if formulation_info(m["formulation"]).rho == "one":  # the integrated problem's rho
             scales = f"rho_scale {m['integrated_rho_scale']:g} (integrated)"
         else:
             rs = m.get("rho_scale_enabled", m["rho_scale"])
@@ -164,7 +166,7 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
         lines.append(
             f"  focus window    {f0:g}..{f1:g} s, {m['focus_steps']} of {m['steps']} steps{note}"
         )
-    if m["formulation"] != "none":
+    if m["formulation"] != NO_MPC:
         lines.append(
             f"  e_sub (Nm)      p50 {f('e_sub_p50')}  p95 {f('e_sub_p95')}  max {f('e_sub_max')}"
             f"   focus p95 {f('e_sub_p95_focus')}"
@@ -203,8 +205,8 @@ def comparison_line(m: dict[str, Any], base: dict[str, Any]) -> str:
         ratio = f" ({a / b:.2f}x lower)" if b > 0 and a >= b else ""
         return f"{a:.4g} -> {b:.4g}{unit}{ratio}"
 
-    who = "+".join(m["objectives"]) if m["formulation"] != "none" else "no MPC"
-    was = "+".join(base["objectives"]) if base["formulation"] != "none" else "the driver alone"
+    who = "+".join(m["objectives"]) if m["formulation"] != NO_MPC else "no MPC"
+    was = "+".join(base["objectives"]) if base["formulation"] != NO_MPC else "the driver alone"
     text = f"{who} against {was}: yaw-rate rms (focus) {arrow('yaw_rms_focus', ' rad/s')}"
     if m.get("slip_target") is not None:
         text += (

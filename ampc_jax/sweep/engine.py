@@ -42,6 +42,7 @@ from ..admm.core import ADMMSolver
 from ..admm.params import SolverParams
 from ..admm.runners import loop_parts, still_running
 from ..problem.data import ProblemData
+from ..validation import check_count
 
 __all__ = [
     "PairResult",
@@ -238,9 +239,7 @@ def _iterate_all(
         it = finals.iteration
         work = Work(B * jnp.max(it), jnp.sum(it))
     else:
-        if int(segment) < 1:
-            raise ValueError(f"segment: expected an integer >= 1, got {segment!r}")
-        seg = int(segment)
+        seg = check_count(segment, "segment")
 
         def segment_of(setup: Any, carry: Any) -> Any:
             _, body, _ = parts(setup, iterate_of(carry))

@@ -32,6 +32,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..formulations.registry import DEFAULT_FORMULATION
+from ..validation import check_count
+
 __all__ = [
     "FAMILIES",
     "Family",
@@ -87,12 +90,9 @@ class Family:
 
     def sample(self, n: int, seed: int = 0, start: int = 0, **options: Any) -> Any:
         """Cases ``start`` .. ``start + n - 1`` of this family under ``seed``."""
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-            raise ValueError(f"cases: expected an integer >= 1, got {n!r}")
-        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-            raise ValueError(f"seed: expected an integer >= 0, got {seed!r}")
-        if isinstance(start, bool) or not isinstance(start, (int, np.integer)) or start < 0:
-            raise ValueError(f"start: expected an integer >= 0, got {start!r}")
+        check_count(n, "cases")
+        check_count(seed, "seed", 0)
+        check_count(start, "start", 0)
         unknown = sorted(set(options) - set(self.options))
         if unknown:
             raise ValueError(
@@ -210,7 +210,7 @@ def _vehicle_steps(
     start: int,
     *,
     horizon: int | None = None,
-    formulation: str = "local_explicit",
+    formulation: str = DEFAULT_FORMULATION,
     groups: str = "paper",
     ranges: Any = None,
     dtype: Any = None,

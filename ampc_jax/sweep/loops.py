@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..batch import map_scenarios
+from ..results import Status
 
 __all__ = ["LoopRow", "loop_pairs"]
 
@@ -61,7 +62,7 @@ def _reduce(log: Any) -> LoopRow:
         iterations=jnp.mean(it),
         iterations_max=jnp.max(log.iterations),
         iterations_p95=srt[min(k - 1, int(np.ceil(0.95 * k)) - 1)],
-        converged=jnp.all(log.status == 0),
+        converged=jnp.all(log.status == Status.SOLVED),
         fallbacks=jnp.sum(log.fallback),
         e_sub_max=jnp.max(e),
         yaw_rms=jnp.sqrt(jnp.mean((log.yaw_rate - log.yaw_ref) ** 2)),

@@ -47,9 +47,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..batch import pad_cases
+from ..formulations import (
+    DEFAULT_FORMULATION,
+    check_formulation,
+    formulation,
+    formulation_info,
+    formulation_names,
+)
 from ..problem.limits import check_memory as check_problem_memory
 from ..reference import reference_inputs
 from ..results import STATUS
+from ..validation import check_count, check_non_negative, check_relaxation
 from . import memory, store
 from .engine import Work, pair_data, pair_params, sweep_solve
 from .families import StepCases, family
@@ -110,8 +118,9 @@ class SweepSpec:
     family : a registered step family (:data:`~ampc_jax.sweep.families.FAMILIES`).
     cases : number of cases (case indices 0 .. cases-1 of the family under ``seed``).
     rho : the rho scales (factors on eq.opt_ro's rho_j*, the same for every objective).
-    formulation : ``local_explicit`` (default), ``fully_distributed``, ``virtual_center``
-        or ``integrated``.
+    formulation : a registered formulation (default ``local_explicit``; ``fully_distributed``,
+        ``virtual_center``, ``integrated``); a closed-loop family takes those that are
+        decomposed and serve closed loops.
     seed : the family's seed (default 0).
     tol : eps_r = eps_s of eq.Convergence (squared norms; default: the example's
         closed-loop tolerance, 1 Nm^2, for the vehicle families and 1e-6 otherwise).
@@ -134,7 +143,7 @@ class SweepSpec:
     family: str
     cases: int
     rho: tuple[float, ...]
-    formulation: str = "local_explicit"
+    formulation: str = DEFAULT_FORMULATION
     seed: int = 0
     tol: float | None = None
     relaxation: float = 1.0
@@ -149,28 +158,25 @@ class SweepSpec:
 
     def __post_init__(self) -> None:
         fam = family(self.family)
-        if fam.kind == "loop" and self.formulation not in (
-            "local_explicit",
-            "fully_distributed",
-            "virtual_center",
-        ):
-            raise ValueError(
-                f"formulation: a closed-loop family runs local_explicit, fully_distributed "
-                f"or virtual_center, got {self.formulation!r}"
-            )
+        if fam.kind == "loop":
+            names = formulation_names(decomposed=True, closed_loop=True)
+            if self.formulation not in names:
+                raise ValueError(
+                    f"formulation: a closed-loop family runs one of {list(names)}, "
+                    f"got {self.formulation!r}"
+                )
+        else:
+            check_formulation(self.formulation)
         if fam.kind == "step" and self.duration is not None:
             raise ValueError(f"duration: family {self.family!r} is of single steps")
         for name in ("cases", "chunk", "max_iter"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-                raise ValueError(f"{name}: expected an integer >= 1, got {v!r}")
+            check_count(getattr(self, name), name)
         object.__setattr__(self, "rho", tuple(float(r) for r in self.rho))
         if not self.rho or not all(np.isfinite(r) and r > 0 for r in self.rho):
             raise ValueError(f"rho: expected positive finite scales, got {self.rho!r}")
-        if self.tol is not None and not (np.isfinite(self.tol) and self.tol >= 0):
-            raise ValueError(f"tol: expected a finite value >= 0, got {self.tol!r}")
-        if not 0.0 < float(self.relaxation) < 2.0:
-            raise ValueError(f"relaxation: expected a value in (0, 2), got {self.relaxation!r}")
+        if self.tol is not None:
+            check_non_negative(self.tol, "tol")
+        check_relaxation(self.relaxation)
 
     @property
     def dtype(self) -> Any:
@@ -217,18 +223,14 @@ def git_commit() -> str:
     return r.stdout.strip() or "unknown"
 
 
-# The structured local solve for the explicit formulations: a sweep vmaps a
-# batch of single steps, where the Riccati recursion's setup is 3.4x to 5x
-# cheaper than the condensed forms' at N_p = 10 and 20 and its iterations are
-# cheaper too (docs/bench_peers.md, "Where the cost goes"). Drives scanned in
-# chunks of 32 favour woodbury_factored instead (bench/bench_peers.py).
-BATCH_KKT = {"local_explicit": "riccati", "integrated": "riccati"}
-
-
 def _solver(spec: SweepSpec, topology: Any) -> Any:
-    from ..formulations import formulation
-
-    extra = {"kkt": BATCH_KKT[spec.formulation]} if spec.formulation in BATCH_KKT else {}
+    """The formulation of ``spec`` with its batched KKT form (``info.batch_kkt``:
+    the explicit formulations declare the Riccati recursion, whose setup is 3.4x
+    to 5x cheaper than the condensed forms' on a vmapped batch of single steps
+    at N_p = 10 and 20, docs/bench_peers.md, "Where the cost goes"; drives
+    scanned in chunks of 32 favour woodbury_factored instead, bench/bench_peers.py)."""
+    kkt = formulation_info(spec.formulation).batch_kkt
+    extra = {} if kkt is None else {"kkt": kkt}
     return formulation(
         spec.formulation, topology, max_iter=spec.max_iter, anderson=spec.anderson, **extra
     )

@@ -1,10 +1,12 @@
 """Gradient tuning: the solver's speed (:mod:`.solver`), the objectives' weights
-through the differentiable closed loop (:mod:`.weights`) and the
-tuned-parameters file (:mod:`.params_file`)."""
+through the differentiable closed loop (:mod:`.weights`) and a learned start
+(:mod:`.warm_start`), each through one training loop (:mod:`.fit`). What they
+write, the tuned-parameters file, is configuration I/O
+(:mod:`ampc_jax.io.params_file`); its names are re-exported here."""
 
 from __future__ import annotations
 
-from .params_file import (
+from ..io.params_file import (
     PARAMS_FORMAT,
     TunedParams,
     apply_params,

@@ -17,8 +17,9 @@ averaged over a training batch of a scenario family::
 
 with U the whole horizon's inputs (N_p x n_u) and s (``scale``, default
 N_p n_u, i.e. one unit per input and step) keeping small optima from
-dominating. Minimised with Adam (optax); the update step is jitted and the
-cases vmapped. Fewer unrolled iterations to land close is what fewer
+dominating. Minimised with Adam (optax) by the tuners' one loop
+(:func:`~ampc_jax.tuning.fit.fit`); the update step is jitted and the cases
+vmapped. Fewer unrolled iterations to land close is what fewer
 iterations to tolerance means for the while-loop runner: the result is then
 evaluated on held-out cases (another seed, optionally another horizon) by
 iterations to eq.Convergence's tolerance (:func:`evaluate_points`), beside
@@ -36,18 +37,22 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..admm.params import SolverParams
-from ..admm.runners import check_iterations
 from ..formulations import formulation
 from ..problem.data import ProblemData
 from ..problem.topology import Topology
 from ..reference import reference_inputs as batch_reference
+from ..validation import check_count
+from .fit import FitSpec, fit
 
 __all__ = [
     "GRID_SCALES",
     "LOSSES",
     "SolverTuning",
     "Theta",
+    "batch_params",
     "evaluate_points",
+    "pairs_program",
+    "point_row",
     "reference_inputs",
     "residual_loss",
     "theta_of",
@@ -185,7 +190,38 @@ def residual_loss(
     return jnp.mean(jax.vmap(one)(data))
 
 
-def _pairs_program(solver: Any) -> Any:
+def batch_params(n: int, J: int, rho: Any, alpha: float, tol: float, dt: Any) -> SolverParams:
+    """n copies of one parameter point: rho scales (a float or (J,)), alpha, eps_r = eps_s."""
+    r = jnp.broadcast_to(jnp.asarray(np.broadcast_to(np.asarray(rho, float), (J,)), dt), (n, J))
+    full = lambda v: jnp.full((n,), v, dt)  # noqa: E731
+    return SolverParams(r, full(alpha), full(tol), full(tol), full(0.0))
+
+
+def point_row(
+    name: str, out: Any, u0_star: np.ndarray, rho_scale: Any, relaxation: float
+) -> dict[str, Any]:
+    """One evaluation row of a point solved on every case (``out``: the pairs'
+    result): iterations to tolerance (median, p95, max), the share converged,
+    and the worst first-step error max_i ||u0_i - u0*_i|| (``u0_error``) and
+    max_i ||u0_i - u0*_i|| / (||u0*_i|| + 1) (``u0_rel_error``)."""
+    it = np.asarray(out.iterations)
+    err = np.linalg.norm(np.asarray(out.u0, float) - u0_star, axis=1)
+    return {
+        "name": name,
+        "rho_scale": [float(x) for x in rho_scale],
+        "relaxation": float(relaxation),
+        "median": float(np.median(it)),
+        "p95": float(np.percentile(it, 95)),
+        "max": int(np.max(it)),
+        "converged": float(np.mean(np.asarray(out.converged))),
+        "u0_error": float(np.max(err)),
+        "u0_rel_error": float(np.max(err / (np.linalg.norm(u0_star, axis=1) + 1.0))),
+    }
+
+
+def pairs_program(solver: Any) -> Any:
+    """One compiled program solving (case, point) pairs with ``solver`` to
+    tolerance (:func:`~ampc_jax.sweep.engine.solve_pairs`): ``f(data, params)``."""
     from ..sweep.engine import solve_pairs
 
     return jax.jit(lambda d, p: solve_pairs(solver, d, p)[0])
@@ -214,33 +250,12 @@ def evaluate_points(
     J = solver.topology.n_objectives
     n = int(u_star.shape[0])
     dt = jax.tree.leaves(data)[0].dtype
-    run = _pairs_program(solver)
+    run = pairs_program(solver)
     u0_star = np.asarray(u_star)[:, 0, :]
 
     def measure(name: str, rho: Any, alpha: float) -> dict[str, Any]:
         r = np.broadcast_to(np.asarray(rho, float), (J,))
-        p = SolverParams(
-            jnp.broadcast_to(jnp.asarray(r, dt), (n, J)),
-            jnp.full((n,), alpha, dt),
-            jnp.full((n,), tol, dt),
-            jnp.full((n,), tol, dt),
-            jnp.zeros((n,), dt),
-        )
-        out = run(data, p)
-        it = np.asarray(out.iterations)
-        err = np.linalg.norm(np.asarray(out.u0, float) - u0_star, axis=1)
-        rel = err / (np.linalg.norm(u0_star, axis=1) + 1.0)
-        return {
-            "name": name,
-            "rho_scale": [float(x) for x in r],
-            "relaxation": float(alpha),
-            "median": float(np.median(it)),
-            "p95": float(np.percentile(it, 95)),
-            "max": int(np.max(it)),
-            "converged": float(np.mean(np.asarray(out.converged))),
-            "u0_error": float(np.max(err)),
-            "u0_rel_error": float(np.max(rel)),
-        }
+        return point_row(name, run(data, batch_params(n, J, r, alpha, tol, dt)), u0_star, r, alpha)
 
     rows = [measure(name, rho, alpha) for name, (rho, alpha) in points.items()]
     grid_rows = []
@@ -287,18 +302,14 @@ def tune_solver(
     the grid's best common scale and the tuned point (:func:`evaluate_points`).
     ``progress``: tqdm's ``disable`` negated (None: on a terminal only).
     """
-    import optax
-    from tqdm import tqdm
-
     from ..sweep.families import family
 
     fam = family(family_name)
     if fam.kind != "step":
         raise ValueError(f"family: {fam.name!r} is a {fam.kind} family; expected a step family")
     for name, v in (("steps", steps), ("iterations", iterations), ("cases", cases)):
-        check_iterations(v, name)
-    if not (np.isfinite(lr) and lr > 0):
-        raise ValueError(f"lr: expected a positive finite number, got {lr!r}")
+        check_count(v, name)
+    spec = FitSpec(int(steps), lr, desc="tune", progress=progress)
     opts: dict[str, Any] = {} if horizon is None else {"horizon": int(horizon)}
     if dtype is not None:
         opts["dtype"] = dtype
@@ -310,19 +321,9 @@ def tune_solver(
     u_star = jnp.asarray(reference_inputs(T, train.data), dt)
     s = float(T.horizon * T.n_u) if scale is None else float(scale)
     theta = theta_of(init_rho_scale, init_relaxation, T.n_objectives, dt)
-    opt = optax.adam(float(lr))
-    state = opt.init(theta)
     K = int(iterations)
 
-    @jax.jit
-    def update(theta: Theta, state: Any) -> tuple[Theta, Any, Any]:
-        value, g = jax.value_and_grad(unrolled_loss, argnums=1)(
-            solver, theta, train.data, u_star, K, s, loss, float(tol)
-        )
-        upd, state = opt.update(g, state, theta)
-        return optax.apply_updates(theta, upd), state, value
-
-    def record(step: int, th: Theta, value: Any) -> dict[str, Any]:
+    def record(step: int, th: Theta, value: Any, _: Any) -> dict[str, Any]:
         rho, alpha = unpack(th)
         return {
             "step": step,
@@ -331,25 +332,14 @@ def tune_solver(
             "relaxation": float(alpha),
         }
 
-    history: list[dict[str, Any]] = []
-    best = (np.inf, theta)
-    bar = tqdm(range(int(steps)), desc="tune", disable=None if progress is None else not progress)
-    for k in bar:
-        new, state, value = update(theta, state)
-        history.append(record(k, theta, value))  # the loss of theta before the step
-        if np.isfinite(float(value)) and float(value) < best[0]:
-            best = (float(value), theta)
-        bar.set_postfix(loss=f"{float(value):.3e}")
-        theta = new
-    final = float(
-        jax.jit(lambda th: unrolled_loss(solver, th, train.data, u_star, K, s, loss, float(tol)))(
-            theta
-        )
+    run = fit(
+        lambda th: unrolled_loss(solver, th, train.data, u_star, K, s, loss, float(tol)),
+        theta,
+        spec,
+        record=record,
     )
-    history.append(record(int(steps), theta, final))
-    if np.isfinite(final) and final < best[0]:
-        best = (final, theta)
-    rho, alpha = unpack(best[1])
+    history = run.history
+    rho, alpha = unpack(run.theta)
     rho_scale = tuple(float(x) for x in np.asarray(rho))
     relaxation = float(alpha)
     settings = {

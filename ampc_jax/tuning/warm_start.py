@@ -46,10 +46,20 @@ from ..admm.learned_start import (
     StartArrays,
     StartModel,
     box_coordinates,
+    mlp,
     problem_features,
 )
 from ..admm.params import SolverParams
-from ..admm.runners import check_iterations, loop_parts
+from ..admm.runners import loop_parts
+from ..validation import check_choice, check_count, check_positive
+from .fit import FitSpec, Validation, fit
+from .solver import batch_params
+from .start_evaluation import (
+    evaluate_loops,
+    evaluate_model,
+    evaluate_starts,
+    start_table,
+)
 
 __all__ = [
     "START_LOSSES",
@@ -114,12 +124,6 @@ def command_settings(
     }
 
 
-def _params(n: int, J: int, rho: Any, alpha: float, tol: float, dt: Any) -> SolverParams:
-    r = jnp.broadcast_to(jnp.asarray(np.broadcast_to(np.asarray(rho, float), (J,)), dt), (n, J))
-    full = lambda v: jnp.full((n,), v, dt)  # noqa: E731
-    return SolverParams(r, full(alpha), full(tol), full(tol), full(0.0))
-
-
 def fixed_points(solver: Any, data: Any, params: SolverParams) -> tuple[np.ndarray, Any, Any]:
     """(U* (n, N_p, n_u), the final states, converged (n,)): every case of ``data``
     solved by ``solver`` (vmapped while loop) at ``params``' tolerances."""
@@ -179,6 +183,285 @@ def _loop_pairs_of(cases: Any, dtype: Any) -> tuple[Any, Any, Any]:
     return cfg, jax.tree.map(flat, log.data), jax.tree.map(flat, log.warm)
 
 
+class _TrainingSet(NamedTuple):
+    """The training pairs of a family: what a network reads and what it is fitted to.
+
+    kind : ``"step"`` or ``"loop"``; inner : Local Explicit at the command's settings.
+    data : the steps' ProblemData (leading pair axis); prev : the previous
+        iterates (``"loop"``) or None; fx : the fixed points' states; u_star :
+        (n, N_p, n_u) their inputs; settings : :func:`command_settings`; rho : (J,);
+    tol : the command's tolerance; example : the family's example (or None).
+    """
+
+    kind: str
+    inner: Any
+    data: Any
+    prev: Any
+    fx: Any
+    u_star: Any
+    settings: dict[str, Any]
+    rho: np.ndarray
+    tol: float
+    example: str | None
+
+
+class _Scaled(NamedTuple):
+    """The standardised regression problem of the pretraining phase and the
+    network's fixed numbers (its input and output maps, the schedule's start)."""
+
+    fixed: StartArrays
+    var: _Train
+    X: Any
+    Y: Any
+    M: Any
+    at_lo: Any
+    at_hi: Any
+    lo_y: Any
+    hi_y: Any
+    sizes: dict[str, Any]
+
+
+def _check_settings(**kw: Any) -> None:
+    """The counts, the schedule, the loss and the widths of :func:`tune_warm_start`."""
+    for name, low in (
+        ("cases", 1),
+        ("pretrain_steps", 0),
+        ("steps", 0),
+        ("iterations", 1),
+        ("schedule", 0),
+        ("batch", 1),
+        ("heldout_cases", 1),
+    ):
+        check_count(kw[name], name, low)
+    if kw["schedule"] > SCHEDULE_MAX:
+        raise ValueError(
+            f"schedule: expected at most {SCHEDULE_MAX} iterations, got {kw['schedule']}"
+        )
+    check_choice(kw["loss"], "loss", START_LOSSES)
+    check_positive(kw["lr"], "lr")
+    hidden = kw["hidden"]
+    if not hidden or any(int(h) < 1 for h in hidden):
+        raise ValueError(f"hidden: expected layer widths >= 1, got {hidden!r}")
+
+
+def _training_set(
+    fam: Any,
+    train: Any,
+    dt: Any,
+    *,
+    rho_scale: Any,
+    relaxation: float | None,
+    anderson: int | None,
+    tol: float | None,
+    max_iter: int,
+) -> _TrainingSet:
+    """Phase 1: the pairs (a step family's cases; a loop family's control steps under
+    today's warm start) and their fixed points, far below the command's tolerance
+    (:data:`TARGET_TOL`), from the same start a solve has; pairs that did not
+    reach theirs are dropped (ValueError when more than half)."""
+    from ..closed_loop.controller import controller_for
+    from ..formulations import formulation
+
+    kind = "loop" if fam.kind == "loop" else "step"
+    if kind == "loop":
+        cfg, data, prev = _loop_pairs_of(train, dt)
+        T = controller_for(cfg).topology
+        example_name = cfg.example
+    else:
+        cfg, data, prev = train.config, train.data, None
+        T = train.topology
+        example_name = None if cfg is None else cfg.example
+    st = command_settings(
+        example_name, rho_scale=rho_scale, relaxation=relaxation, anderson=anderson
+    )
+    if tol is None:
+        tol = float(cfg.tol_primal) if cfg is not None else 1e-6
+    J = T.n_objectives
+    rho = np.broadcast_to(np.asarray(st["rho_scale"], float), (J,))
+    inner = formulation("local_explicit", T, anderson=st["anderson"], max_iter=int(max_iter))
+    n = int(jax.tree.leaves(data)[0].shape[0])
+    tight = batch_params(n, J, rho, st["relaxation"], TARGET_TOL, dt)
+    deep = formulation("local_explicit", T, anderson=st["anderson"], max_iter=20 * int(max_iter))
+    if kind == "loop":
+        res = jax.jit(jax.vmap(deep.solve))(data, tight, prev)
+        u_star, fx, conv = np.asarray(res.u), res.state, np.asarray(res.converged)
+    else:
+        u_star, fx, conv = fixed_points(deep, data, tight)
+    keep = np.flatnonzero(conv)
+    if keep.size < max(1, n // 2):
+        raise ValueError(
+            f"cases: only {keep.size} of {n} training cases reached the fixed point "
+            f"({TARGET_TOL:g}); the family's problems are too hard for this solver"
+        )
+    take = lambda tree: jax.tree.map(lambda x: jnp.asarray(x)[keep], tree)  # noqa: E731
+    return _TrainingSet(
+        kind=kind,
+        inner=inner,
+        data=take(data),
+        prev=None if prev is None else take(prev),
+        fx=take(fx),
+        u_star=jnp.asarray(u_star[keep], dt),
+        settings=st,
+        rho=rho,
+        tol=float(tol),
+        example=example_name,
+    )
+
+
+def _scaled(
+    ts: _TrainingSet, hidden: tuple[int, ...], schedule: int, seed: int, dt: Any
+) -> _Scaled:
+    """Phase 2: the network's inputs (the step's data, and a ``"loop"`` network's
+    previous iterate) and outputs (a ``"step"`` network's inputs as positions in
+    their ranges; a ``"loop"`` network's correction of the previous iterate),
+    standardised; the initial weights (a zero last layer) and schedule."""
+    inner, data, n = ts.inner, ts.data, int(ts.u_star.shape[0])
+    T = inner.topology
+    J = T.n_objectives
+    feats = np.asarray(jax.vmap(problem_features)(data), np.float64)
+    x_point = np.asarray(jax.vmap(inner.point)(ts.fx), np.float64)
+    if ts.kind == "loop":
+        p_point = np.asarray(jax.vmap(inner.point)(ts.prev), np.float64)
+        feats = np.concatenate([feats, p_point], axis=1)
+        target = x_point - p_point
+        o_mean = np.zeros(target.shape[1])
+        _, o_scale = _scales(target)
+        mask = (np.abs(target).max(0) > 0).astype(float)
+    else:
+        target = np.asarray(jax.vmap(box_coordinates)(ts.u_star, data), np.float64).reshape(n, -1)
+        box = np.asarray(jnp.isfinite(data.lb) & jnp.isfinite(data.ub)).reshape(n, -1)
+        o_mean, o_scale = _scales(target)
+        mask = np.ones(target.shape[1])
+    f_mean = feats.mean(0)
+    f_std = feats.std(0)
+    f_scale = np.where(f_std > 1e-9 * (1.0 + np.abs(f_mean)), f_std, 1.0)
+    sizes = [feats.shape[1], *(int(h) for h in hidden), target.shape[1]]
+    relaxation = ts.settings["relaxation"]
+    fixed = StartArrays(
+        layers=(),
+        input_mean=jnp.asarray(f_mean, dt),
+        input_scale=jnp.asarray(f_scale, dt),
+        out_mean=jnp.asarray(o_mean, dt),
+        out_scale=jnp.asarray(o_scale, dt),
+        out_mask=jnp.asarray(mask, dt),
+        schedule_rho=jnp.ones((schedule, J), dt),
+        schedule_relaxation=jnp.full((schedule,), relaxation, dt),
+    )
+    a0 = relaxation / 2.0
+    var = _Train(
+        _init_layers(jax.random.PRNGKey(int(seed)), sizes, dt),
+        jnp.zeros((schedule, J), dt),
+        jnp.full((schedule,), np.log(a0 / (1.0 - a0)), dt),
+    )
+    Y = jnp.asarray((target - o_mean) / o_scale, dt)
+    if ts.kind == "step":
+        # an input at its bound is met by any prediction beyond it (the start clips):
+        # a hinge there, BOUND_MARGIN of the range beyond the bound, so that the
+        # start's row is active (kkt_multipliers) rather than just inside
+        at_lo = jnp.asarray(box & (target <= 1e-9), bool)
+        at_hi = jnp.asarray(box & (target >= 1.0 - 1e-9), bool)
+        lo_y = jnp.asarray((-BOUND_MARGIN - o_mean) / o_scale, dt)
+        hi_y = jnp.asarray((1.0 + BOUND_MARGIN - o_mean) / o_scale, dt)
+    else:
+        at_lo = at_hi = jnp.zeros(Y.shape, bool)
+        lo_y = hi_y = jnp.zeros(Y.shape[1:], dt)
+    return _Scaled(
+        fixed=fixed,
+        var=var,
+        X=jnp.asarray((feats - f_mean) / f_scale, dt).clip(-10.0, 10.0),
+        Y=Y,
+        M=jnp.asarray(mask, dt),
+        at_lo=at_lo,
+        at_hi=at_hi,
+        lo_y=lo_y,
+        hi_y=hi_y,
+        sizes={"n_point": x_point.shape[1], "objectives": T.objective_names, "horizon": T.horizon},
+    )
+
+
+def _pretrain_loss(sc: _Scaled) -> Any:
+    """The regression of the outputs on the fixed points (a hinge at the bounds)."""
+
+    def loss(v: _Train, idx: Any) -> Any:
+        y = jax.vmap(lambda x: mlp(v.layers, x))(sc.X[idx])
+        e = jnp.where(
+            sc.at_lo[idx],
+            jnp.maximum(y - sc.lo_y, 0.0),
+            jnp.where(sc.at_hi[idx], jnp.maximum(sc.hi_y - y, 0.0), y - sc.Y[idx]),
+        )
+        return jnp.sum(sc.M * e**2) / (jnp.sum(sc.M) * idx.shape[0])
+
+    return loss
+
+
+def _unrolled_loss(
+    ts: _TrainingSet, sc: _Scaled, wrapper: Any, p_one: Any, loss: str, iterations: int
+) -> Any:
+    """The loss of K unrolled iterations of the wrapped solver (module docstring)."""
+    T = ts.inner.topology
+    scale_c = float(T.horizon * T.n_u)
+    tol = ts.tol
+
+    def one_case(arrays: StartArrays, d: Any, pv: Any, us: Any) -> Any:
+        setup = wrapper.setup_with(d, p_one, arrays)
+        s0 = wrapper.init(setup, pv)
+        if loss == "error":
+            s = wrapper.run_fixed(setup, s0, int(iterations))
+            u = wrapper.result(setup, s).u
+            return jnp.sum((u - us) ** 2) / (jnp.sum(us**2) + scale_c)
+        if loss == "fixed_point":
+            s = wrapper.run_fixed(setup, s0, int(iterations))
+            return jnp.log(jnp.sum(s.primal + s.dual) / tol + 1e-12)
+        carry, body, it_of = loop_parts(
+            lambda x: wrapper.step(setup, x), s0, wrapper.anderson, wrapper.point, wrapper.at
+        )
+
+        def f(c: Any, _: Any) -> tuple[Any, Any]:
+            c = body(c)
+            x = it_of(c)
+            m = jnp.maximum(jnp.max(x.primal), jnp.max(x.dual)) / tol
+            return c, jax.nn.sigmoid(jnp.log(m + 1e-30) / 2.0)
+
+        return jnp.mean(jax.lax.scan(f, carry, None, length=int(iterations))[1])
+
+    def un_loss(v: _Train, idx: Any) -> Any:
+        arrays = _arrays(v, sc.fixed)
+        d = jax.tree.map(lambda x: x[idx], ts.data)
+        us = ts.u_star[idx]
+        if ts.prev is None:
+            e = jax.vmap(lambda dd, uu: one_case(arrays, dd, None, uu))(d, us)
+        else:
+            pv = jax.tree.map(lambda x: x[idx], ts.prev)
+            e = jax.vmap(lambda dd, pp, uu: one_case(arrays, dd, pp, uu))(d, pv, us)
+        return jnp.mean(e)
+
+    return un_loss
+
+
+def _validation_score(
+    ts: _TrainingSet, sc: _Scaled, wrapper: Any, p_one: Any, val: np.ndarray
+) -> Any:
+    """(mean, median, p95) of the iterations to tolerance on the validation split."""
+
+    @jax.jit
+    def val_iterations(arrays: StartArrays) -> Any:
+        d = jax.tree.map(lambda x: x[val], ts.data)
+
+        def one(dd: Any, pv: Any) -> Any:
+            setup = wrapper.setup_with(dd, p_one, arrays)
+            return wrapper.run(setup, wrapper.init(setup, pv)).iteration
+
+        if ts.prev is None:
+            return jax.vmap(lambda dd: one(dd, None))(d)
+        return jax.vmap(one)(d, jax.tree.map(lambda x: x[val], ts.prev))
+
+    def score(v: _Train) -> tuple[float, float, float]:
+        it = np.asarray(val_iterations(_arrays(v, sc.fixed)), float)
+        return float(np.mean(it)), float(np.median(it)), float(np.percentile(it, 95))
+
+    return score
+
+
 def tune_warm_start(
     family_name: str = "cruise_step",
     *,
@@ -215,36 +498,33 @@ def tune_warm_start(
     closed-loop tolerance, 1 Nm^2, by default). ``pretrain_steps`` Adam steps of
     regression on the fixed points, then ``steps`` Adam steps on the unrolled
     loss (``loss``, K = ``iterations``), minibatches of ``batch`` cases, learning
-    rate ``lr`` (cosine decay). With ``evaluate``: ``heldout_cases`` cases
+    rate ``lr`` (cosine decay; ``unrolled_lr``, default ``lr / 30``, for the
+    unrolled phase). With ``evaluate``: ``heldout_cases`` cases
     under ``heldout_seed``, and (step families) as many under ``shifted_seed``
     in the family's other friction and speed range (``ranges="shifted"``),
     by :func:`evaluate_starts`; loop families by :func:`evaluate_loops`.
-    """
-    import optax
-    from tqdm import tqdm
 
-    from ..formulations import formulation
+    The phases: the training pairs and their fixed points
+    (:func:`_training_set`), the standardised regression problem
+    (:func:`_scaled`), pretraining and the unrolled phase (both by
+    :func:`~ampc_jax.tuning.fit.fit`; the unrolled phase keeps the point of
+    fewest validation iterations), then the evaluation.
+    """
     from ..sweep.families import family
 
     fam = family(family_name)
-    for name, v, low in (
-        ("cases", cases, 1),
-        ("pretrain_steps", pretrain_steps, 0),
-        ("steps", steps, 0),
-        ("iterations", iterations, 1),
-        ("schedule", schedule, 0),
-        ("batch", batch, 1),
-        ("heldout_cases", heldout_cases, 1),
-    ):
-        check_iterations(v, name, low)
-    if schedule > SCHEDULE_MAX:
-        raise ValueError(f"schedule: expected at most {SCHEDULE_MAX} iterations, got {schedule}")
-    if loss not in START_LOSSES:
-        raise ValueError(f"loss: expected one of {START_LOSSES}, got {loss!r}")
-    if not (np.isfinite(lr) and lr > 0):
-        raise ValueError(f"lr: expected a positive finite number, got {lr!r}")
-    if not hidden or any(int(h) < 1 for h in hidden):
-        raise ValueError(f"hidden: expected layer widths >= 1, got {hidden!r}")
+    _check_settings(
+        cases=cases,
+        pretrain_steps=pretrain_steps,
+        steps=steps,
+        iterations=iterations,
+        schedule=schedule,
+        batch=batch,
+        heldout_cases=heldout_cases,
+        loss=loss,
+        lr=lr,
+        hidden=hidden,
+    )
     t0 = time.perf_counter()
     dt = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
     opts: dict[str, Any] = {}
@@ -254,150 +534,27 @@ def tune_warm_start(
         if "horizon" not in fam.options:
             raise ValueError(f"horizon: family {fam.name!r} has no horizon option")
         opts["horizon"] = int(horizon)
-    train = _cases(fam, cases, seed, opts)
-    kind = "loop" if fam.kind == "loop" else "step"
-    if kind == "loop":
-        cfg, data, prev = _loop_pairs_of(train, dt)
-        from ..closed_loop.controller import controller_for
-
-        T = controller_for(cfg).topology
-        example_name = cfg.example
-    else:
-        cfg, data, prev = train.config, train.data, None
-        T = train.topology
-        example_name = None if cfg is None else cfg.example
-    st = command_settings(
-        example_name, rho_scale=rho_scale, relaxation=relaxation, anderson=anderson
+    ts = _training_set(
+        fam,
+        _cases(fam, cases, seed, opts),
+        dt,
+        rho_scale=rho_scale,
+        relaxation=relaxation,
+        anderson=anderson,
+        tol=tol,
+        max_iter=max_iter,
     )
-    if tol is None:
-        tol = float(cfg.tol_primal) if cfg is not None else 1e-6
-    J = T.n_objectives
-    rho = np.broadcast_to(np.asarray(st["rho_scale"], float), (J,))
-    inner = formulation("local_explicit", T, anderson=st["anderson"], max_iter=int(max_iter))
-    n = int(jax.tree.leaves(data)[0].shape[0])
-    # the fixed points: far below the command's tolerance, from the same start a solve has
-    tight = _params(n, J, rho, st["relaxation"], TARGET_TOL, dt)
-    deep = formulation("local_explicit", T, anderson=st["anderson"], max_iter=20 * int(max_iter))
-    if kind == "loop":
-        res = jax.jit(jax.vmap(deep.solve))(data, tight, prev)
-        u_star, fx, conv = np.asarray(res.u), res.state, np.asarray(res.converged)
-    else:
-        u_star, fx, conv = fixed_points(deep, data, tight)
-    keep = np.flatnonzero(conv)
-    if keep.size < max(1, n // 2):
-        raise ValueError(
-            f"cases: only {keep.size} of {n} training cases reached the fixed point "
-            f"({TARGET_TOL:g}); the family's problems are too hard for this solver"
-        )
-    take = lambda tree: jax.tree.map(lambda x: jnp.asarray(x)[keep], tree)  # noqa: E731
-    data, fx, u_star = take(data), take(fx), jnp.asarray(u_star[keep], dt)
-    prev = None if prev is None else take(prev)
-    n = int(keep.size)
-    feats = np.asarray(jax.vmap(problem_features)(data), np.float64)
-    x_point = np.asarray(jax.vmap(inner.point)(fx), np.float64)
-    if kind == "loop":
-        p_point = np.asarray(jax.vmap(inner.point)(prev), np.float64)
-        feats = np.concatenate([feats, p_point], axis=1)
-        target = x_point - p_point
-        o_mean = np.zeros(target.shape[1])
-        _, o_scale = _scales(target)
-        mask = (np.abs(target).max(0) > 0).astype(float)
-    else:
-        target = np.asarray(jax.vmap(box_coordinates)(u_star, data), np.float64).reshape(n, -1)
-        box = np.asarray(jnp.isfinite(data.lb) & jnp.isfinite(data.ub)).reshape(n, -1)
-        o_mean, o_scale = _scales(target)
-        mask = np.ones(target.shape[1])
-    f_mean = feats.mean(0)
-    f_std = feats.std(0)
-    f_scale = np.where(f_std > 1e-9 * (1.0 + np.abs(f_mean)), f_std, 1.0)
-    sizes = [feats.shape[1], *(int(h) for h in hidden), target.shape[1]]
-    fixed = StartArrays(
-        layers=(),
-        input_mean=jnp.asarray(f_mean, dt),
-        input_scale=jnp.asarray(f_scale, dt),
-        out_mean=jnp.asarray(o_mean, dt),
-        out_scale=jnp.asarray(o_scale, dt),
-        out_mask=jnp.asarray(mask, dt),
-        schedule_rho=jnp.ones((schedule, J), dt),
-        schedule_relaxation=jnp.full((schedule,), st["relaxation"], dt),
+    sc = _scaled(ts, hidden, schedule, seed, dt)
+    st, T, kind = ts.settings, ts.inner.topology, ts.kind
+    n = int(ts.u_star.shape[0])
+    wrapper = LearnedStart(
+        ts.inner, StartModel.from_arrays(_arrays(sc.var, sc.fixed), kind, **sc.sizes)
     )
-    a0 = st["relaxation"] / 2.0
-    var = _Train(
-        _init_layers(jax.random.PRNGKey(int(seed)), sizes, dt),
-        jnp.zeros((schedule, J), dt),
-        jnp.full((schedule,), np.log(a0 / (1.0 - a0)), dt),
-    )
-    model_sizes = {
-        "n_point": x_point.shape[1],
-        "objectives": T.objective_names,
-        "horizon": T.horizon,
-    }
-    wrapper = LearnedStart(inner, StartModel.from_arrays(_arrays(var, fixed), kind, **model_sizes))
-    X = jnp.asarray((feats - f_mean) / f_scale, dt).clip(-10.0, 10.0)
-    Y = jnp.asarray((target - o_mean) / o_scale, dt)
-    M = jnp.asarray(mask, dt)
-    if kind == "step":
-        # an input at its bound is met by any prediction beyond it (the start clips):
-        # a hinge there, BOUND_MARGIN of the range beyond the bound, so that the
-        # start's row is active (kkt_multipliers) rather than just inside
-        at_lo = jnp.asarray(box & (target <= 1e-9), bool)
-        at_hi = jnp.asarray(box & (target >= 1.0 - 1e-9), bool)
-        lo_y = jnp.asarray((-BOUND_MARGIN - o_mean) / o_scale, dt)
-        hi_y = jnp.asarray((1.0 + BOUND_MARGIN - o_mean) / o_scale, dt)
-    else:
-        at_lo = at_hi = jnp.zeros(Y.shape, bool)
-        lo_y = hi_y = jnp.zeros(Y.shape[1:], dt)
-    scale_c = float(T.horizon * T.n_u)
     p_one = SolverParams(
-        jnp.asarray(rho, dt),
+        jnp.asarray(ts.rho, dt),
         jnp.asarray(st["relaxation"], dt),
-        *(jnp.asarray(v, dt) for v in (tol, tol, 0.0)),
+        *(jnp.asarray(v, dt) for v in (ts.tol, ts.tol, 0.0)),
     )
-
-    def pre_loss(v: _Train, idx: Any) -> Any:  # regression on the fixed points
-        from ..admm.learned_start import mlp
-
-        y = jax.vmap(lambda x: mlp(v.layers, x))(X[idx])
-        e = jnp.where(
-            at_lo[idx],
-            jnp.maximum(y - lo_y, 0.0),
-            jnp.where(at_hi[idx], jnp.maximum(hi_y - y, 0.0), y - Y[idx]),
-        )
-        return jnp.sum(M * e**2) / (jnp.sum(M) * idx.shape[0])
-
-    def one_case(arrays: StartArrays, d: Any, pv: Any, us: Any) -> Any:
-        setup = wrapper.setup_with(d, p_one, arrays)
-        s0 = wrapper.init(setup, pv)
-        if loss == "error":
-            s = wrapper.run_fixed(setup, s0, int(iterations))
-            u = wrapper.result(setup, s).u
-            return jnp.sum((u - us) ** 2) / (jnp.sum(us**2) + scale_c)
-        if loss == "fixed_point":
-            s = wrapper.run_fixed(setup, s0, int(iterations))
-            return jnp.log(jnp.sum(s.primal + s.dual) / tol + 1e-12)
-        carry, body, it_of = loop_parts(
-            lambda x: wrapper.step(setup, x), s0, wrapper.anderson, wrapper.point, wrapper.at
-        )
-
-        def f(c: Any, _: Any) -> tuple[Any, Any]:
-            c = body(c)
-            x = it_of(c)
-            m = jnp.maximum(jnp.max(x.primal), jnp.max(x.dual)) / tol
-            return c, jax.nn.sigmoid(jnp.log(m + 1e-30) / 2.0)
-
-        return jnp.mean(jax.lax.scan(f, carry, None, length=int(iterations))[1])
-
-    def un_loss(v: _Train, idx: Any) -> Any:
-        arrays = _arrays(v, fixed)
-        d = jax.tree.map(lambda x: x[idx], data)
-        us = u_star[idx]
-        if prev is None:
-            e = jax.vmap(lambda dd, uu: one_case(arrays, dd, None, uu))(d, us)
-        else:
-            pv = jax.tree.map(lambda x: x[idx], prev)
-            e = jax.vmap(lambda dd, pp, uu: one_case(arrays, dd, pp, uu))(d, pv, us)
-        return jnp.mean(e)
-
     history: list[dict[str, Any]] = []
     rng = np.random.default_rng(int(seed))
     # a validation split of the training cases picks the unrolled phase's point by
@@ -405,62 +562,52 @@ def tune_warm_start(
     n_val = max(1, min(n // 8, 512)) if n > 1 else 0
     n_fit = n - n_val
     bsize = min(int(batch), n_fit)
-    bar_off = None if progress is None else not progress
-    val = np.arange(n_fit, n)
+    score = _validation_score(ts, sc, wrapper, p_one, np.arange(n_fit, n))
 
-    @jax.jit
-    def val_iterations(arrays: StartArrays) -> Any:
-        d = jax.tree.map(lambda x: x[val], data)
+    def batches(_: int) -> Any:
+        return jnp.asarray(rng.choice(n_fit, bsize, replace=False))
 
-        def one(dd: Any, pv: Any) -> Any:
-            setup = wrapper.setup_with(dd, p_one, arrays)
-            return wrapper.run(setup, wrapper.init(setup, pv)).iteration
+    def phase(name: str) -> Any:
+        return lambda k, v, value, aux: {"phase": name, "step": k, "loss": float(value)}
 
-        if prev is None:
-            return jax.vmap(lambda dd: one(dd, None))(d)
-        return jax.vmap(one)(d, jax.tree.map(lambda x: x[val], prev))
-
-    def score(v: _Train) -> tuple[float, float, float]:
-        it = np.asarray(val_iterations(_arrays(v, fixed)), float)
-        return float(np.mean(it)), float(np.median(it)), float(np.percentile(it, 95))
-
-    def train_phase(name: str, fn: Any, n_steps: int, rate: float) -> _Train:
-        nonlocal var
-        if n_steps == 0:
-            return var
-        opt = optax.adam(optax.cosine_decay_schedule(rate, n_steps, alpha=0.05))
-        state = opt.init(var)
-
-        @jax.jit
-        def update(v: _Train, s: Any, idx: Any) -> tuple[_Train, Any, Any]:
-            value, g = jax.value_and_grad(fn)(v, idx)
-            upd, s = opt.update(g, s, v)
-            return optax.apply_updates(v, upd), s, value
-
-        bar = tqdm(range(n_steps), desc=name, disable=bar_off)
-        unrolled = name == "unrolled"
-        best = (score(var), var) if unrolled and n_val else None
-        if best is not None:
-            history.append({"phase": "validation", "step": 0, "iterations": best[0]})
-        for k in bar:
-            idx = jnp.asarray(rng.choice(n_fit, bsize, replace=False))
-            new, state, value = update(var, state, idx)
-            history.append({"phase": name, "step": k, "loss": float(value)})
-            bar.set_postfix(loss=f"{float(value):.3e}")
-            var = new if np.all([np.all(np.isfinite(x)) for x in jax.tree.leaves(new)]) else var
-            if best is not None and ((k + 1) % VALIDATE_EVERY == 0 or k + 1 == n_steps):
-                sc = score(var)
-                history.append({"phase": "validation", "step": k + 1, "iterations": sc})
-                if sc < best[0]:
-                    best = (sc, var)
-        return best[1] if best is not None else var
-
-    untrained = var  # a "loop" network with its zero last layer is today's warm start
-    var = train_phase("pretrain", pre_loss, int(pretrain_steps), float(lr))
-    var = train_phase(
-        "unrolled", un_loss, int(steps), float(lr) / 30.0 if unrolled_lr is None else unrolled_lr
+    rate = float(lr) / 30.0 if unrolled_lr is None else float(unrolled_lr)
+    untrained = sc.var  # a "loop" network with its zero last layer is today's warm start
+    pre = fit(
+        _pretrain_loss(sc),
+        sc.var,
+        FitSpec(
+            int(pretrain_steps),
+            float(lr),
+            0.05,
+            finite_updates=True,
+            desc="pretrain",
+            progress=progress,
+        ),
+        batches=batches,
+        select="last",
+        record=phase("pretrain"),
+        history=history,
     )
-    kept_untrained = False
+    validation = (
+        Validation(
+            score,
+            VALIDATE_EVERY,
+            lambda k, s: {"phase": "validation", "step": k, "iterations": s},
+        )
+        if n_val
+        else None
+    )
+    un = fit(
+        _unrolled_loss(ts, sc, wrapper, p_one, loss, iterations),
+        pre.theta,
+        FitSpec(int(steps), rate, 0.05, finite_updates=True, desc="unrolled", progress=progress),
+        batches=batches,
+        select="last",
+        validation=validation,
+        record=phase("unrolled"),
+        history=history,
+    )
+    var, kept_untrained = un.theta, False
     if kind == "loop" and n_val and int(steps) > 0:
         # the validation split decides: a trained correction that costs iterations
         # against the previous step's iterate is not kept
@@ -468,7 +615,7 @@ def tune_warm_start(
         history.append({"phase": "validation", "step": "untrained", "iterations": sc0})
         if sc0 < score(var):
             var, kept_untrained = untrained, True
-    model = StartModel.from_arrays(_arrays(var, fixed), kind, **model_sizes)
+    model = StartModel.from_arrays(_arrays(var, sc.fixed), kind, **sc.sizes)
     settings = {
         "family": fam.name,
         "kind": kind,
@@ -482,180 +629,30 @@ def tune_warm_start(
         "schedule": int(schedule),
         "hidden": [int(h) for h in hidden],
         "lr": float(lr),
-        "unrolled_lr": float(lr) / 30.0 if unrolled_lr is None else float(unrolled_lr),
+        "unrolled_lr": rate,
         "batch": bsize,
         "loss": loss,
-        "tol": float(tol),
+        "tol": ts.tol,
         "max_iter": int(max_iter),
-        "example": example_name,
+        "example": ts.example,
         "objectives": list(T.objective_names),
         "horizon": T.horizon,
         "parameters": model.n_parameters,
         "kept_untrained": kept_untrained,
         "tuned_for": {
-            "formulation": "local_explicit",
-            "rho_scale": [float(x) for x in rho],
+            "formulation": ts.inner.info.name,
+            "rho_scale": [float(x) for x in ts.rho],
             "relaxation": st["relaxation"],
             "anderson": st["anderson"],
-            "kkt": inner.kkt,
+            "kkt": ts.inner.kkt,
             "dtype": jnp.dtype(dt).name,
-            "tol": float(tol),
+            "tol": ts.tol,
         },
         "train_seconds": time.perf_counter() - t0,
     }
     evaluation: dict[str, Any] = {}
     if evaluate:
-        if kind == "step":
-            sets = [(f"seed {heldout_seed}", heldout_seed, {})]
-            if "ranges" in fam.options:
-                sets.append(
-                    (f"seed {shifted_seed}, shifted ranges", shifted_seed, {"ranges": "shifted"})
-                )
-            for label, sd, extra in sets:
-                held = _cases(fam, heldout_cases, sd, {**opts, **extra})
-                evaluation[label] = evaluate_starts(
-                    held, model, settings["tuned_for"], max_iter=int(max_iter)
-                )
-        else:
-            held = _cases(fam, heldout_cases, heldout_seed, opts)
-            evaluation[f"seed {heldout_seed}"] = evaluate_loops(held, model, dtype=dt)
+        evaluation = evaluate_model(
+            fam, model, settings, opts, heldout_cases, heldout_seed, shifted_seed, max_iter, dt
+        )
     return StartTuning(model, history, evaluation, settings)
-
-
-def _pairs_program(solver: Any) -> Any:
-    from ..sweep.engine import solve_pairs
-
-    return jax.jit(lambda d, p: solve_pairs(solver, d, p)[0])
-
-
-def evaluate_starts(
-    held: Any,
-    model: StartModel | None,
-    tuned_for: dict[str, Any],
-    *,
-    max_iter: int = 500,
-    extra: dict[str, tuple[Any, float, int]] | None = None,
-) -> dict[str, Any]:
-    """Iterations to tolerance on the step cases ``held`` from three starts.
-
-    Contenders (each solved to ``tuned_for["tol"]`` by the while loop, cap
-    ``max_iter``): ``eq.opt_ro, cold`` (plain ADMM, rho scale 1, alpha 1: the
-    paper's iteration), ``command, cold`` (the command's rho scales, relaxation
-    and Anderson memory from a cold start), ``learned start`` (the same with
-    ``model``'s start and schedule), and ``extra`` name -> (rho scale,
-    relaxation, anderson) from a cold start (a rho-tuned point). Returns
-    ``{"cases", "tol", "rows": [{name, median, p95, max, converged, u0_error,
-    u0_rel_error}]}``; ``u0_error`` is the worst ||u0 - u0*|| against Clarabel.
-    """
-    from ..formulations import formulation
-    from .solver import reference_inputs
-
-    T = held.topology
-    J = T.n_objectives
-    dt = jax.tree.leaves(held.data)[0].dtype
-    n = int(jax.tree.leaves(held.data)[0].shape[0])
-    tol = float(tuned_for["tol"])
-    u0_star = reference_inputs(T, held.data)[:, 0, :]
-    cmd = (tuned_for["rho_scale"], float(tuned_for["relaxation"]), int(tuned_for["anderson"]))
-    contenders: list[tuple[str, Any, Any, float]] = [
-        ("eq.opt_ro, cold", formulation("local_explicit", T, max_iter=max_iter), 1.0, 1.0),
-        (
-            "command, cold",
-            formulation("local_explicit", T, max_iter=max_iter, anderson=cmd[2]),
-            cmd[0],
-            cmd[1],
-        ),
-    ]
-    for name, (rs, alpha, aa) in (extra or {}).items():
-        contenders.append(
-            (name, formulation("local_explicit", T, max_iter=max_iter, anderson=aa), rs, alpha)
-        )
-    if model is not None:
-        inner = formulation("local_explicit", T, max_iter=max_iter, anderson=cmd[2])
-        contenders.append(("learned start", LearnedStart(inner, model), cmd[0], cmd[1]))
-    rows = []
-    for name, solver, rs, alpha in contenders:
-        out = _pairs_program(solver)(held.data, _params(n, J, rs, alpha, tol, dt))
-        it = np.asarray(out.iterations)
-        err = np.linalg.norm(np.asarray(out.u0, float) - u0_star, axis=1)
-        rows.append(
-            {
-                "name": name,
-                "rho_scale": [float(x) for x in np.broadcast_to(np.asarray(rs, float), (J,))],
-                "relaxation": float(alpha),
-                "median": float(np.median(it)),
-                "p95": float(np.percentile(it, 95)),
-                "max": int(np.max(it)),
-                "converged": float(np.mean(np.asarray(out.converged))),
-                "u0_error": float(np.max(err)),
-                "u0_rel_error": float(np.max(err / (np.linalg.norm(u0_star, axis=1) + 1.0))),
-            }
-        )
-    return {"cases": n, "tol": tol, "rows": rows}
-
-
-def evaluate_loops(held: Any, model: StartModel | None, *, dtype: Any = None) -> dict[str, Any]:
-    """Closed loops of a loop family's cases ``held`` with today's warm start and with
-    ``model``'s: iterations per control step (median, p95, max, mean over every
-    step of every loop) and e_sub (the integrated MPC in shadow; p95 and max, Nm)."""
-    from dataclasses import replace
-
-    from ..closed_loop.loop import simulate_batch
-
-    rows = []
-    runs = [("previous step (today)", held.config)]
-    if model is not None:
-        runs.append(("learned start", replace(held.config, learned_start=model)))
-    for name, cfg in runs:
-        log = simulate_batch(cfg, held.scenarios, held.n_steps, dtype=dtype)
-        it = np.asarray(log.iterations, float).ravel()
-        e = np.asarray(log.e_sub, float)
-        e = e[np.isfinite(e)]
-        rows.append(
-            {
-                "name": name,
-                "median": float(np.median(it)),
-                "p95": float(np.percentile(it, 95)),
-                "max": int(np.max(it)),
-                "mean": float(np.mean(it)),
-                "e_sub_p95": float(np.percentile(e, 95)) if e.size else float("nan"),
-                "e_sub_max": float(np.max(e)) if e.size else float("nan"),
-                "fallbacks": int(np.sum(np.asarray(log.fallback))),
-            }
-        )
-    return {"loops": int(np.shape(held.scenarios.mu)[0]), "steps": held.n_steps, "rows": rows}
-
-
-def start_table(evaluation: dict[str, Any]) -> str:
-    """The held-out evaluation as a compact text table (one block per held-out set)."""
-    lines = []
-    for label, ev in evaluation.items():
-        if "loops" in ev:
-            lines.append(f"held-out {label}: {ev['loops']} closed loops of {ev['steps']} steps")
-            lines.append(
-                f"  {'start':<24} {'median':>7} {'p95':>6} {'max':>5} {'mean':>6} "
-                f"{'e_sub p95':>10} {'max':>7}"
-            )
-            for r in ev["rows"]:
-                lines.append(
-                    f"  {r['name']:<24} {r['median']:>7.1f} {r['p95']:>6.1f} {r['max']:>5d} "
-                    f"{r['mean']:>6.2f} {r['e_sub_p95']:>10.3g} {r['e_sub_max']:>7.3g}"
-                )
-            continue
-        lines.append(f"held-out {label}: {ev['cases']} cases, tol {ev['tol']:g}")
-        lines.append(
-            f"  {'start':<24} {'median':>7} {'p95':>6} {'max':>5} {'conv':>5} "
-            f"{'max|du0|':>9} {'rel':>8}"
-        )
-        base = ev["rows"][0]
-        for r in ev["rows"]:
-            lines.append(
-                f"  {r['name']:<24} {r['median']:>7.1f} {r['p95']:>6.1f} {r['max']:>5d} "
-                f"{r['converged']:>5.2f} {r['u0_error']:>9.3g} {r['u0_rel_error']:>8.2g}"
-            )
-        best = ev["rows"][-1]
-        lines.append(
-            f"  {best['name']} against {base['name']}: median {base['median'] / max(best['median'], 1):.2f}x "
-            f"fewer, p95 {base['p95'] / max(best['p95'], 1):.2f}x fewer"
-        )
-    return "\n".join(lines)

@@ -33,8 +33,9 @@ with
   term), w_T = ``torque_weight``.
 
 Iterations are not in the loss (K is fixed while training); they are reported
-by the evaluation. The loss is minimised with Adam (optax) on the logs; the
-update is one jitted program (vmap over cases inside). The best iterate seen
+by the evaluation. The loss is minimised with Adam (optax) on the logs by the
+tuners' one loop (:func:`~ampc_jax.tuning.fit.fit`); the update is one jitted
+program (vmap over cases inside). The best iterate seen
 is then evaluated with the deployed controller (to tolerance, ``solve``) on
 the training cases, optional held-out cases and the example's registered
 scenarios, against the default weights and against the example's baseline
@@ -52,12 +53,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..admm.runners import check_iterations
 from ..closed_loop.config import LoopParams, SimConfig, baseline_config
 from ..closed_loop.loop import Simulator, run_closed_loop, simulator_for
 from ..sweep.families import LoopCases
+from ..validation import check_count, check_non_negative, check_positive
 from ..vehicle.manoeuvres import SCENARIOS, scenario
 from ..vehicle.params import CONTROL_DT
+from .fit import FitSpec, fit
 
 __all__ = [
     "LossOptions",
@@ -264,18 +266,6 @@ def evaluate_settings(
 
 
 # ------------------------------------------------------------------ tuning
-def _check_int(name: str, v: Any) -> int:
-    return check_iterations(v, name)
-
-
-def _check_positive(name: str, v: Any) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-        raise ValueError(f"{name}: expected a positive finite number, got {v!r}")
-    if not (np.isfinite(v) and v > 0):
-        raise ValueError(f"{name}: expected a positive finite number, got {v!r}")
-    return float(v)
-
-
 def _take(scenarios: Any, n: int) -> Any:
     return jax.tree.map(lambda x: np.asarray(x)[:n], scenarios)
 
@@ -335,24 +325,20 @@ def tune_weights(
 
     Returns a :class:`WeightsResult` with the best weights seen (lowest training loss).
     """
-    import optax
-    from tqdm import tqdm
-
-    steps = _check_int("steps", steps)
-    K = _check_int("iterations", iterations)
-    lr = _check_positive("lr", lr)
+    steps = check_count(steps, "steps")
+    K = check_count(iterations, "iterations")
+    spec = FitSpec(steps, lr, finite_grads=True, desc="tune weights", progress=progress)
     for name, v in (
         ("slip_limit", slip_limit),
         ("slip_temperature", slip_temperature),
         ("yaw_scale", yaw_scale),
     ):
-        _check_positive(name, v)
+        check_positive(v, name)
     for name, v in (("slip_weight", slip_weight), ("torque_weight", torque_weight)):
-        if not (np.isfinite(v) and v >= 0):
-            raise ValueError(f"{name}: expected a finite number >= 0, got {v!r}")
+        check_non_negative(v, name)
     if torque_limit is not None:
-        _check_positive("torque_limit", torque_limit)
-    if config.formulation == "none":
+        check_positive(torque_limit, "torque_limit")
+    if not config.mpc:
         raise ValueError("formulation: 'none' runs no MPC: no weights to tune")
     all_fields = weight_fields(config.settings)
     fields = all_fields if fields is None else tuple(fields)
@@ -360,13 +346,13 @@ def tune_weights(
     if unknown or not fields:
         raise ValueError(f"fields: expected some of {list(all_fields)}, got {list(fields)!r}")
     n_all = int(np.shape(jax.tree.leaves(cases.scenarios)[0])[0])
-    n_train = n_all if train_cases is None else _check_int("train_cases", train_cases)
+    n_train = n_all if train_cases is None else check_count(train_cases, "train_cases")
     if n_train > n_all:
         raise ValueError(f"train_cases: expected at most the {n_all} cases given, got {n_train}")
     n_steps = int(cases.n_steps)
     if duration is not None:
         n_steps = min(
-            n_steps, max(1, int(round(_check_positive("duration", duration) / CONTROL_DT)))
+            n_steps, max(1, int(round(check_positive(duration, "duration") / CONTROL_DT)))
         )
     names = _example_scenarios(config) if scenarios is None else tuple(scenarios)
     specs = [scenario(s) for s in names]
@@ -396,17 +382,9 @@ def tune_weights(
     params = train_cfg.loop_params(dt)
     train_sc = _cast(_take(cases.scenarios, n_train), dt)
     theta0 = log_weights(config.settings, fields, dt)
-    opt = optax.adam(lr)
 
     def loss_fn(th: Any) -> tuple[Any, LossTerms]:
         return loop_loss(th, sim, params, train_sc, n_steps, fields, options)
-
-    @jax.jit
-    def update(th: Any, state: Any) -> tuple[Any, Any, Any, LossTerms]:
-        (value, terms), g = jax.value_and_grad(loss_fn, has_aux=True)(th)
-        g = jnp.where(jnp.isfinite(g), g, 0.0)  # a non-finite gradient moves nothing
-        upd, state = opt.update(g, state, th)
-        return optax.apply_updates(th, upd), state, value, terms
 
     def record(step: int, th: Any, value: Any, terms: LossTerms) -> dict[str, Any]:
         w = np.exp(np.asarray(th, float))
@@ -422,24 +400,12 @@ def tune_weights(
             **{f: float(w[k]) for k, f in enumerate(fields)},
         }
 
-    theta, state = theta0, opt.init(theta0)
-    history: list[dict[str, Any]] = []
-    best = (np.inf, theta0)
-    bar = tqdm(
-        range(steps), desc="tune weights", disable=None if progress is None else not progress
-    )
-    for k in bar:
-        new, state, value, terms = update(theta, state)
-        history.append(record(k, theta, value, terms))  # the loss of theta before the step
-        v = float(value)
-        if np.isfinite(v) and v < best[0]:
-            best = (v, theta)
-        bar.set_postfix(loss=f"{v:.4g}", slip=f"{float(np.max(terms.slip_max)):.3f}")
-        theta = new
-    _, _, value, terms = update(theta, state)  # the final point's loss (same program)
-    history.append(record(steps, theta, value, terms))
-    if np.isfinite(float(value)) and float(value) < best[0]:
-        best = (float(value), theta)
+    def postfix(value: Any, terms: LossTerms) -> dict[str, str]:
+        return {"loss": f"{float(value):.4g}", "slip": f"{float(np.max(terms.slip_max)):.3f}"}
+
+    run = fit(loss_fn, theta0, spec, has_aux=True, record=record, postfix=postfix)
+    history = run.history
+    best = (run.value, run.theta)
     w_best = np.exp(np.asarray(best[1], float))
     tuned = {f: float(w_best[k]) for k, f in enumerate(fields)}
     run = {

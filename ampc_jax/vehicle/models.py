@@ -60,6 +60,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from ..validation import check_flag
 from .params import VehicleParams
 
 __all__ = [
@@ -164,8 +165,7 @@ class ExampleSettings:
                 raise ValueError(
                     f"{name}: expected a torque bound >= 0 Nm, got {getattr(self, name)!r}"
                 )
-        if not isinstance(self.literal, (bool, np.bool_)):
-            raise ValueError(f"literal: expected True or False, got {self.literal!r}")
+        check_flag(self.literal, "literal")
         return self
 
 

@@ -9,6 +9,7 @@ import pytest
 from ampc_jax.admm.feasibility import certify
 from ampc_jax.formulations import FORMULATIONS, formulation
 from ampc_jax.generate import random_problem
+from ampc_jax.results import Status
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -54,7 +55,7 @@ def test_every_formulation_reports_infeasible_with_its_evidence(name):
     q = f.params(tol_primal=1e-10, tol_dual=1e-10)
     bad = _with_bounds(p, 2, 0, 1.0, -1.0)
     res = jax.jit(f.solve)(bad, q)
-    assert int(res.status) == 3 and not bool(res.converged)
+    assert int(res.status) == Status.INFEASIBLE and not bool(res.converged)
     assert bool(res.certificate.infeasible) and int(res.certificate.step) == 2
     _check(res.certificate, bad)
     assert np.all(np.isfinite(np.asarray(res.u)))  # never a NaN, even with no solution
@@ -101,7 +102,7 @@ def test_a_set_empty_by_less_than_the_tolerance_is_not_called_solved(name):
     )
     f = formulation(name, p.topology, max_iter=1000)
     res = jax.jit(f.solve)(p.data(), f.params())
-    assert int(res.status) == 3
+    assert int(res.status) == Status.INFEASIBLE
     _check_scaled(res.certificate, p.data(), margin=1e-3)
 
 

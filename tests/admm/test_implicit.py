@@ -20,6 +20,7 @@ from jax.flatten_util import ravel_pytree
 from ampc_jax.admm.implicit import run_implicit, solve_implicit
 from ampc_jax.formulations import FullyDistributed, LocalExplicit
 from ampc_jax.generate import random_problem
+from ampc_jax.results import Status
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -77,7 +78,7 @@ def central_differences(kind: str, anderson: int):
 def check_gradient(kind: str, anderson: int):
     _, _, grad, _, flat, _ = case(kind, anderson)
     (_, res), g = grad(THETA)
-    assert int(res.status) == 0 and bool(res.converged), res.status
+    assert int(res.status) == Status.SOLVED and bool(res.converged), res.status
     gi = np.asarray(ravel_pytree(g)[0])
     fd, _ = central_differences(kind, anderson)
     scale = np.max(np.abs(fd))
@@ -109,7 +110,7 @@ def test_forward_value_is_the_ordinary_solve(anderson):
     )
     imp = jax.jit(lambda d, p: solve_implicit(solver, d, p))(data, params)
     plain = jax.jit(solver.solve)(data, params)
-    assert int(imp.status) == int(plain.status) == 0
+    assert int(imp.status) == int(plain.status) == Status.SOLVED
     assert int(imp.iterations) == int(plain.iterations) > 10
     np.testing.assert_array_equal(imp.u, plain.u)
     np.testing.assert_array_equal(imp.stats.gap, plain.stats.gap)

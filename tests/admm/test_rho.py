@@ -12,6 +12,7 @@ from ampc_jax.admm.costs import local_costs
 from ampc_jax.admm.rho import RHO_STEPS, optimal_rho, tridiagonal_max
 from ampc_jax.formulations import LocalExplicit
 from ampc_jax.generate import random_problem
+from ampc_jax.results import Status
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -127,7 +128,7 @@ def test_opt_rho_against_brute_force_scan():
     for seed in range(6):
         d = random_problem(seed, 2, shared="all", reference_scale=2.0).data()
         star = star_fn(d, star_params)
-        assert int(star.status) == 0
+        assert int(star.status) == Status.SOLVED
         its = np.asarray(scan_fn(d, grid_params))
         ratios.append(int(star.iterations) / its.min())
     assert scan_fn._cache_size() == 1  # one program for every problem and grid point

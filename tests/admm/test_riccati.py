@@ -13,6 +13,7 @@ from ampc_jax.admm.kkt import RiccatiKKT, select_kkt
 from ampc_jax.formulations import LocalExplicit
 from ampc_jax.generate import random_problem
 from ampc_jax.reference import solve_reference
+from ampc_jax.results import Status
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -107,7 +108,7 @@ def test_riccati_solve_matches_clarabel_with_general_rows():
     q = solver.params(tol_primal=1e-12, tol_dual=1e-12)
     datas = [pr.data() for pr in probs]
     res = jax.jit(jax.vmap(solver.solve, in_axes=(0, None)))(stack(datas), q)
-    assert np.all(np.asarray(res.status) == 0)
+    assert np.all(np.asarray(res.status) == Status.SOLVED)
     for k, dk in enumerate(datas):
         ref = solve_reference(T, dk)
         assert np.any(np.isclose(ref.u[:, 0] + ref.u[:, 1], 0.6, atol=1e-6)), "row inactive"
@@ -132,7 +133,7 @@ def test_batched_certificate_only_where_needed():
     solver = LocalExplicit(T, kkt="riccati", max_iter=300)
     q = solver.params(tol_primal=1e-10, tol_dual=1e-10)
     alone = jax.jit(solver.solve)(bad, q)
-    assert int(alone.status) == 3
+    assert int(alone.status) == Status.INFEASIBLE
     batched = jax.jit(jax.vmap(solver.solve, in_axes=(0, None)))
     res = batched(stack([good, bad]), q)
     st = np.asarray(res.status)

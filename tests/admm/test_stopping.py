@@ -11,6 +11,7 @@ from ampc_jax.formulations import FORMULATIONS, formulation
 from ampc_jax.generate import random_problem
 from ampc_jax.problem import condensed_qp
 from ampc_jax.reference import solve_reference
+from ampc_jax.results import Status
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -38,7 +39,7 @@ def test_the_gap_bounds_the_distance_to_the_optimum(name):
         for b, p in enumerate(problems):
             d = p.data()
             res = jax.jit(f.solve)(d, q)
-            assert int(res.status) == 0
+            assert int(res.status) == Status.SOLVED
             gap = float(res.stats.gap)
             np.testing.assert_allclose(batch.stats.gap[b], gap, rtol=1e-6, atol=1e-12)
             ref = solve_reference(T, d, eps=1e-12)
@@ -85,7 +86,7 @@ def test_the_relative_tolerance_reads_the_same_in_any_units(name):
     absolute = f.params(tol_primal=1e-8, tol_dual=1e-8)
     k = 1e3
     one, big = solve(d, rel), solve(_scaled(d, k), rel)
-    assert int(one.status) == int(big.status) == 0
+    assert int(one.status) == int(big.status) == Status.SOLVED
     assert abs(int(one.iterations) - int(big.iterations)) <= 2, (one.iterations, big.iterations)
     np.testing.assert_allclose(np.asarray(big.u) / k, one.u, rtol=1e-6, atol=1e-6)
     a1, ak = solve(d, absolute), solve(_scaled(d, k), absolute)

@@ -2,8 +2,8 @@
 bridge's side (items 1, 2, 3, 4, 13), each failing on the bridge before its
 fix. Peers are independent of the bridge: python-can's slcan and socketcand
 interfaces, a socketcand server written here that relays between its
-clients as one bus (cb_fault_peers), cantools and autosar-e2e for every
-frame (cb_peers). The tests assert behaviour (a ramp from zero, no stale
+clients as one bus (ampc_jax.testing.can_fault_peers), cantools and autosar-e2e for every
+frame (ampc_jax.testing.can_peers). The tests assert behaviour (a ramp from zero, no stale
 frame, no intruder sample believed), never a wall-clock figure."""
 
 from __future__ import annotations
@@ -15,7 +15,9 @@ from pathlib import Path
 
 import can
 import pytest
-from cb_fault_peers import (
+
+import can_bridge
+from ampc_jax.testing.can_fault_peers import (
     SerialAdapter,
     SocketcandBus,
     candump_tx,
@@ -23,9 +25,7 @@ from cb_fault_peers import (
     open_raw_host,
     read_all,
 )
-from cb_peers import MOTION, WHEELS, CmdChecker, send_sensors, state_message
-
-import can_bridge
+from ampc_jax.testing.can_peers import MOTION, WHEELS, CmdChecker, send_sensors, state_message
 
 pytestmark = pytest.mark.timeout(90)
 

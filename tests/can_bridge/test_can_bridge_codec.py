@@ -6,9 +6,9 @@ import random
 
 import e2e.p01
 import pytest
-from cb_peers import data_id, db, protect
 
 import can_bridge
+from ampc_jax.testing.can_peers import data_id, db, protect
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -11,9 +11,9 @@ import time
 import tty
 
 import pytest
-from cb_peers import CmdChecker, recv_until, slcan_peer
 
 import can_bridge
+from ampc_jax.testing.can_peers import CmdChecker, recv_until, slcan_peer
 
 pytestmark = pytest.mark.timeout(60)
 

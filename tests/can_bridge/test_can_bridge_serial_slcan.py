@@ -8,10 +8,10 @@ import select
 import time
 
 import pytest
-from cb_fault_peers import SerialAdapter
-from cb_peers import STEER, CmdChecker, protect
 
 import can_bridge
+from ampc_jax.testing.can_fault_peers import SerialAdapter
+from ampc_jax.testing.can_peers import STEER, CmdChecker, protect
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -11,7 +11,9 @@ import time
 import can
 import e2e.p01
 import pytest
-from cb_peers import (
+
+import can_bridge
+from ampc_jax.testing.can_peers import (
     DRIVER,
     MOTION,
     STEER,
@@ -23,8 +25,6 @@ from cb_peers import (
     slcan_peer,
     state_message,
 )
-
-import can_bridge
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -205,7 +205,7 @@ def test_received_state_checks_crc_counter_and_timeout() -> None:
 
 
 def _e2e_frame(name: str, values: dict[str, float], counter: int) -> can.Message:
-    """Framed by cantools from the DBC at ``can_bridge.dbc_path()`` (cb_peers.db)
+    """Framed by cantools from the DBC at ``can_bridge.dbc_path()`` (ampc_jax.testing.can_peers.db)
     and protected by autosar-e2e (E2E Profile 1 CRC over the Data ID, the
     counter in the low nibble of byte 1)."""
     msg = db().get_message_by_name(name)

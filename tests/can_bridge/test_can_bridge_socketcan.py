@@ -36,7 +36,7 @@ PROBLEM = _af_can_problem()
     PROBLEM is not None, reason=f"SocketCAN runtime test needs AF_CAN and vcan0: {PROBLEM}"
 )
 def test_socketcan_runtime_on_vcan0() -> None:
-    from cb_peers import CmdChecker
+    from ampc_jax.testing.can_peers import CmdChecker
 
     rx = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
     rx.bind(("vcan0",))

@@ -10,9 +10,9 @@ import threading
 import time
 
 import pytest
-from cb_peers import SENSORS, CmdChecker, db, protect
 
 import can_bridge
+from ampc_jax.testing.can_peers import SENSORS, CmdChecker, db, protect
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -1,8 +1,8 @@
 """Issue 21, "can_bridge fit for a real vehicle": one test (or a few) per
 finding, each failing on the bridge as it was and passing now. Peers are
 independent: python-can's slcan interface over the pty, a socketcand server
-and an SLCAN adapter written here (cb_fault_peers), cantools decoding from the
-shipped DBC, autosar-e2e checking every CRC (cb_peers)."""
+and an SLCAN adapter written here (ampc_jax.testing.can_fault_peers), cantools decoding from the
+shipped DBC, autosar-e2e checking every CRC (ampc_jax.testing.can_peers)."""
 
 from __future__ import annotations
 
@@ -11,14 +11,16 @@ import time
 
 import can
 import pytest
-from cb_fault_peers import (
+
+import can_bridge
+from ampc_jax.testing.can_fault_peers import (
     SerialAdapter,
     SocketcandServer,
     burst_after,
     open_raw_host,
     read_all,
 )
-from cb_peers import (
+from ampc_jax.testing.can_peers import (
     MOTION,
     SENSORS,
     STEER,
@@ -28,8 +30,6 @@ from cb_peers import (
     send_sensors,
     state_message,
 )
-
-import can_bridge
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -48,7 +48,7 @@ def test_sweep_of_generated_problems_runs_the_plain_iteration(tmp_path, capsys):
 
 @pytest.mark.timeout(300)
 def test_tune_runs_the_examples_anderson_and_records_it(tmp_path, capsys):
-    from ampc_jax.tuning import read_params
+    from ampc_jax.io import read_params
 
     out = tmp_path / "t"
     code = main(

@@ -5,7 +5,7 @@ import json
 import pytest
 
 from ampc_jax.cli import main
-from ampc_jax.tuning import read_params, write_params
+from ampc_jax.io import read_params, write_params
 
 
 def _solve(capsys, *args):
@@ -98,7 +98,7 @@ def test_params_file_bounds_say_why(tmp_path, capsys):
     iteration 144 Nm off), 10**400 raised OverflowError and nesting
     RecursionError: each is refused naming the field, with the bound's reason."""
     from ampc_jax.closed_loop import config_for
-    from ampc_jax.tuning.params_file import apply_params
+    from ampc_jax.io.params_file import apply_params
 
     cfg = config_for("cruise_lane_change")
     path = tmp_path / "params.json"

@@ -7,8 +7,8 @@ import json
 import pytest
 
 from ampc_jax.cli import main
-from ampc_jax.tuning import read_params, write_params
-from ampc_jax.tuning.params_file import tuned_for_differences
+from ampc_jax.io import read_params, write_params
+from ampc_jax.io.params_file import tuned_for_differences
 
 
 def _warnings(err):

@@ -11,8 +11,8 @@ import pytest
 from ampc_jax.admm.learned_start import StartModel, model_document, n_features
 from ampc_jax.cli import main
 from ampc_jax.formulations import formulation
+from ampc_jax.io import read_params, write_params
 from ampc_jax.sweep import family
-from ampc_jax.tuning import read_params, write_params
 
 jax.config.update("jax_enable_x64", True)
 

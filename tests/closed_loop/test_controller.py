@@ -22,7 +22,7 @@ from ampc_jax.closed_loop import (
     simulator_for,
     with_settings,
 )
-from ampc_jax.results import USABLE_STATUS
+from ampc_jax.results import USABLE_STATUS, Status
 from ampc_jax.vehicle import CONTROL_DT, SCENARIOS, CruiseSettings
 from ampc_jax.vehicle.manoeuvres import driver_step, initial_driver_state, initial_plant_state
 from ampc_jax.vehicle.plant import measure, plant_step
@@ -117,7 +117,7 @@ def test_step_reproduces_the_closed_loop(replay):
     for k, sh in enumerate(replay.shadow_out):
         np.testing.assert_allclose(sh.u0, lg.u_shadow[k, cols], rtol=1e-9, atol=1e-9)
         assert int(sh.iterations) == int(lg.shadow_iterations[k]), k
-        assert int(sh.status) == int(lg.shadow_status[k]) == 0, k
+        assert int(sh.status) == int(lg.shadow_status[k]) == Status.SOLVED, k
     assert len(replay.shadow_out) == (40 if replay.observed else 0)
     assert replay.observed or replay.ctrl.example.name == "stability"
     # the runs are not trivial: the solver iterates and the agents act
@@ -162,7 +162,7 @@ def test_nan_measurement_falls_back(replay, bad):
         np.testing.assert_array_equal(a, b)
     # recovery: the next good measurement converges, exactly as a cold start would
     tq2, _, info2 = replay.step(nxt, p, meas, drv)
-    assert int(info2.status) == 0 and not bool(info2.fallback)
+    assert int(info2.status) == Status.SOLVED and not bool(info2.fallback)
     tq3, _, info3 = replay.step(ControllerState(cold, held), p, meas, drv)
     np.testing.assert_array_equal(tq2, tq3)
     assert int(info2.iterations) == int(info3.iterations)

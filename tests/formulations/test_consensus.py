@@ -13,6 +13,7 @@ from ampc_jax.formulations import FullyDistributed, VirtualCenter
 from ampc_jax.generate import random_problem
 from ampc_jax.problem import Constraint, ProblemError, Topology
 from ampc_jax.reference import solve_reference
+from ampc_jax.results import Status
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -45,7 +46,7 @@ def test_reaches_the_integrated_optimum(kind, J, shared):
     active = 0
     for b, (p, d) in enumerate(zip(problems, datas, strict=True)):
         ref = solve_reference(p.topology, d)
-        assert int(res.status[b]) == 0, f"problem {b} did not converge"
+        assert int(res.status[b]) == Status.SOLVED, f"problem {b} did not converge"
         assert relative_error(res.u0[b], ref.u[0]) < 1e-3
         lb, ub = np.asarray(d.lb), np.asarray(d.ub)
         active += int(np.sum(np.isclose(ref.u, lb, atol=1e-6) | np.isclose(ref.u, ub, atol=1e-6)))
@@ -67,7 +68,7 @@ def test_a_row_inside_every_group_it_touches_keeps_the_optimum(kind):
     ref = solve_reference(p.topology, p.data())
     G, h = np.asarray(p.data().Ain[-1]), np.asarray(p.data().bin[:, -1])
     assert np.max(ref.u @ G - h) > -1e-6  # the row binds at the optimum
-    assert int(res.status) == 0 and relative_error(res.u0, ref.u[0]) < 1e-3
+    assert int(res.status) == Status.SOLVED and relative_error(res.u0, ref.u[0]) < 1e-3
 
 
 @pytest.mark.parametrize("kind", KINDS, ids=lambda k: k.__name__)
@@ -88,7 +89,7 @@ def test_a_row_coupling_two_groups_has_a_pinned_gap(kind):
     ref = solve_reference(T, d)
     u = np.asarray(res.u)
     G, h = np.asarray(d.Ain[-1]), np.asarray(d.bin[:, -1])
-    assert int(res.status) == 0
+    assert int(res.status) == Status.SOLVED
     assert np.max(u @ G - h) < 1e-6  # feasible
     gap = float(np.max(np.abs(np.asarray(res.u0) - ref.u[0])))
     assert gap == pytest.approx(1.03, abs=0.02)
@@ -98,7 +99,7 @@ def test_a_row_coupling_two_groups_has_a_pinned_gap(kind):
     np.testing.assert_allclose(u0, [-0.2989, 0.4989, -0.5089], atol=2e-4)
     other = jax.jit(f.solve)(d, f.params(rho=(0.1, 10.0), **TIGHT))
     v0 = np.asarray(other.u0)
-    assert int(other.status) == 0 and v0[0] + v0[1] == pytest.approx(0.2, abs=1e-6)
+    assert int(other.status) == Status.SOLVED and v0[0] + v0[1] == pytest.approx(0.2, abs=1e-6)
     assert v0[0] == pytest.approx(0.047, abs=2e-3) and v0[2] == pytest.approx(-0.5089, abs=2e-4)
 
 
@@ -129,7 +130,7 @@ def test_one_compiled_step_serves_every_parameter_point(kind):
     q = f.params(rho=rho, relaxation=jnp.asarray([1.0, 1.5, 1.2]), tol_primal=1e-8, tol_dual=1e-8)
     batched = jax.jit(jax.vmap(f.solve))(datas, q)
     assert batched.u.shape == (3, p.topology.horizon, p.topology.n_u)
-    assert np.all(np.asarray(batched.status) == 0)
+    assert np.all(np.asarray(batched.status) == Status.SOLVED)
 
 
 @pytest.mark.parametrize("kind", KINDS, ids=lambda k: k.__name__)

@@ -10,6 +10,7 @@ from ampc_jax.admm import ADMMSolver
 from ampc_jax.formulations import FORMULATIONS, Formulation, formulation
 from ampc_jax.generate import random_problem
 from ampc_jax.reference import solve_reference
+from ampc_jax.results import Status
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -23,7 +24,7 @@ def test_every_formulation_under_jit_vmap_and_grad(name):
     q = f.params(tol_primal=1e-12, tol_dual=1e-12)
     data = jax.tree.map(lambda *x: jnp.stack(x), *[p.data() for p in problems])
     out = jax.jit(jax.vmap(f.solve, in_axes=(0, None)))(data, q)
-    assert np.all(np.asarray(out.status) == 0)
+    assert np.all(np.asarray(out.status) == Status.SOLVED)
     for b, p in enumerate(problems):
         ref = solve_reference(T, p.data()).u[0]
         np.testing.assert_allclose(out.u0[b], ref, rtol=1e-3, atol=1e-5)
@@ -55,5 +56,5 @@ def test_a_non_finite_problem_gives_status_numerical_error_and_no_nan(name):
     f = formulation(name, p.topology, max_iter=50)
     bad = p.data()._replace(x0=p.data().x0.at[0].set(jnp.nan))
     res = jax.jit(f.solve)(bad, f.params())
-    assert int(res.status) == 2 and not bool(res.converged)
+    assert int(res.status) == Status.NUMERICAL_ERROR and not bool(res.converged)
     assert np.all(np.isfinite(np.asarray(res.u)))

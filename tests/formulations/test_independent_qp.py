@@ -17,6 +17,7 @@ import pytest
 from ampc_jax.formulations import LocalExplicit
 from ampc_jax.problem import Agent, CondensedQP, Constraint, Objective, Problem, condensed_qp
 from ampc_jax.reference import clarabel_solve
+from ampc_jax.results import Status
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -209,7 +210,7 @@ def test_matches_independent_integrated_qp(n_obj, singular_q, path):
     datas = [p.data() for p in problems]
     q = solver.params(**TIGHT_TOL)
     res = jax.jit(jax.vmap(solver.solve, in_axes=(0, None)))(stack(datas), q)
-    assert np.all(np.asarray(res.status) == 0), np.asarray(res.iterations)
+    assert np.all(np.asarray(res.status) == Status.SOLVED), np.asarray(res.iterations)
     u0 = np.asarray(res.u0)
     nu = T.n_u
 

@@ -9,6 +9,7 @@ import pytest
 from ampc_jax.formulations import IntegratedADMM
 from ampc_jax.generate import random_problem
 from ampc_jax.reference import solve_reference
+from ampc_jax.results import Status
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -46,7 +47,7 @@ def test_integrated_admm_matches_clarabel(n_obj, shared, rich):
     solver = IntegratedADMM(T, max_iter=30000)
     q = solver.params(tol_primal=1e-14, tol_dual=1e-14)
     res = jax.jit(jax.vmap(solver.solve, in_axes=(0, None)))(stack([p.data() for p in problems]), q)
-    assert np.all(np.asarray(res.status) == 0), np.asarray(res.iterations)
+    assert np.all(np.asarray(res.status) == Status.SOLVED), np.asarray(res.iterations)
     active = 0
     for b, p in enumerate(problems):
         ref = clarabel(p)

@@ -13,6 +13,7 @@ from ampc_jax.formulations import LocalExplicit
 from ampc_jax.generate import random_problem
 from ampc_jax.problem import Agent, Constraint, Objective, Problem
 from ampc_jax.reference import solve_reference
+from ampc_jax.results import Status
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -37,11 +38,11 @@ def compare_batch(problems, solver, rtol=1e-3, **params):
     active = 0
     for b, (p, d) in enumerate(zip(problems, datas, strict=True)):
         ref = solve_reference(p.topology, d)
-        assert ref.status == 0
+        assert ref.status == Status.SOLVED
         u0 = np.asarray(res.u0[b])
         # relative per input, with a floor for inputs at (or near) zero
         err = np.max(np.abs(u0 - ref.u[0]) / (np.abs(ref.u[0]) + ATOL / rtol))
-        assert int(res.status[b]) == 0, f"problem {b} did not converge"
+        assert int(res.status[b]) == Status.SOLVED, f"problem {b} did not converge"
         assert err < rtol, f"problem {b}: first-step relative error {err:.2e}"
         lb, ub = np.asarray(d.lb), np.asarray(d.ub)
         active += int(np.sum(np.isclose(ref.u, lb, atol=1e-6) | np.isclose(ref.u, ub, atol=1e-6)))
@@ -277,7 +278,7 @@ def test_float32_matches_float64(kkt):
     r64 = jax.jit(solver.solve)(p.data(jnp.float64), q64)
     r32 = jax.jit(solver.solve)(p.data(jnp.float32), q32)
     assert r32.u.dtype == jnp.float32 and r64.u.dtype == jnp.float64
-    assert int(r64.status) == 0  # the float64 reference converged
+    assert int(r64.status) == Status.SOLVED  # the float64 reference converged
     assert int(r32.status) in (0, 1)  # float32 may stall above 1e-7 (its resolution)
     # float32 tolerance: 1e-3 of the input scale (bounds are O(1) here)
     np.testing.assert_allclose(r32.u0, r64.u0, atol=2e-3)
@@ -293,7 +294,11 @@ def test_max_iter_status_and_no_recompile():
     q = solver.params(tol_primal=1e-14, tol_dual=1e-14)
     fn = jax.jit(solver.solve)
     r = fn(p.data(), q)
-    assert int(r.iterations) == 3 and int(r.status) == 1 and not bool(r.converged)
+    assert (
+        int(r.iterations) == 3
+        and int(r.status) == Status.MAX_ITER_REACHED
+        and not bool(r.converged)
+    )
     fn(random_problem(2, 2).data(), solver.params(rho=0.5, relaxation=1.7, tol_primal=1e-9))
     assert fn._cache_size() == 1  # new data and new parameters: no recompilation
 
@@ -350,7 +355,7 @@ def test_state_views_round_trip(n_obj, shared):
         assert gam[j].shape == (T.horizon, len(T.group_rows(j)))
     # each objective's copy of an input agrees with the consensus output at the
     # optimum (residuals ~1e-5 at tol 1e-10; a wrong view is off by 0.1 to 1)
-    assert int(res.status) == 0
+    assert int(res.status) == Status.SOLVED
     for j in range(n_obj):
         np.testing.assert_allclose(U[j], res.u[:, list(T.group_columns(j))], atol=1e-4)
     back = solver.state_of(U, st.Z, gam)
@@ -468,7 +473,7 @@ def test_three_objectives_convergence_measured():
     solver = LocalExplicit(problems[0].topology, max_iter=20000)
     q = solver.params(tol_primal=1e-8, tol_dual=1e-8)
     res = jax.jit(jax.vmap(solver.solve, in_axes=(0, None)))(stack([p.data() for p in problems]), q)
-    assert np.all(np.asarray(res.status) == 0), np.asarray(res.iterations)
+    assert np.all(np.asarray(res.status) == Status.SOLVED), np.asarray(res.iterations)
     # tol 1e-8 on squared residual norms: residuals ~1e-4. Measured worst first-step
     # error against Clarabel 6.4e-5 (inputs O(1)); 5e-4 leaves 8x. The former 1e-2
     # also passed a solver stopping at tol 1e-4 (errors up to 6.2e-3), e.g. one
@@ -476,7 +481,7 @@ def test_three_objectives_convergence_measured():
     # pass one stopping at 1e-6 (6.3e-4).
     for b, p in enumerate(problems):
         ref = solve_reference(p.topology, p.data())
-        assert ref.status == 0
+        assert ref.status == Status.SOLVED
         np.testing.assert_allclose(res.u0[b], ref.u[0], rtol=0, atol=5e-4)
 
 
@@ -485,7 +490,7 @@ def test_nan_input_reports_numerical_error():
     d = p.data()
     d = d._replace(x0=d.x0.at[0].set(jnp.nan))
     r = jax.jit(LocalExplicit(p.topology).solve)(d)
-    assert int(r.status) == 2 and not bool(r.converged)
+    assert int(r.status) == Status.NUMERICAL_ERROR and not bool(r.converged)
     assert int(r.iterations) <= 2
 
 
@@ -520,7 +525,7 @@ def test_anderson_saves_iterations():
         s = LocalExplicit(T, max_iter=20000, anderson=m)
         q = s.params(tol_primal=1e-8, tol_dual=1e-8)
         r = jax.jit(jax.vmap(s.solve, in_axes=(0, None)))(datas, q)
-        assert np.all(np.asarray(r.status) == 0)
+        assert np.all(np.asarray(r.status) == Status.SOLVED)
         its[m] = np.asarray(r.iterations)
     # measured: 14342 -> 4004 iterations in all; require at least a quarter less
     assert its[3].sum() < 0.75 * its[0].sum(), its
@@ -593,7 +598,9 @@ def test_paper_dual_residual_is_rho_times_slack_change():
     datas = stack([p.data() for p in base] + scaled)
     rs = jax.jit(jax.vmap(slack.solve, in_axes=(0, None)))(datas, q)
     rp = jax.jit(jax.vmap(paper.solve, in_axes=(0, None)))(datas, q)
-    assert np.all(np.asarray(rs.status) == 0) and np.all(np.asarray(rp.status) == 0)
+    assert np.all(np.asarray(rs.status) == Status.SOLVED) and np.all(
+        np.asarray(rp.status) == Status.SOLVED
+    )
     n = len(base)
     for b in range(2 * n):
         ref = solve_reference(T, base[b % n].data()).u[0]

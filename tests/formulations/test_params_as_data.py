@@ -12,6 +12,7 @@ import pytest
 from ampc_jax.admm import SolverParams
 from ampc_jax.formulations import FORMULATIONS, IntegratedADMM, LocalExplicit
 from ampc_jax.generate import random_problem
+from ampc_jax.results import Status
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -60,7 +61,7 @@ def test_one_compiled_step_serves_five_parameter_points(kind):
         q = _params(solver, *pt)
         alone = jax.jit(lambda data, q=q: solver.solve(data, q))(d)  # q a compile-time constant
         assert int(alone.iterations) == int(r.iterations), pt
-        assert int(alone.status) == int(r.status) == 0, pt
+        assert int(alone.status) == int(r.status) == Status.SOLVED, pt
         np.testing.assert_allclose(alone.u, r.u, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(alone.rho, r.rho, rtol=1e-14)
 

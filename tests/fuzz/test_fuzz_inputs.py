@@ -183,7 +183,7 @@ PARAMS_FIELD = re.compile(
 
 def test_params_reader_refuses_hostile_files_naming_the_field(tmp_path, capsys):
     from ampc_jax.closed_loop import config_for
-    from ampc_jax.tuning.params_file import apply_params, read_params
+    from ampc_jax.io.params_file import apply_params, read_params
 
     cfg = config_for("cruise_lane_change")
     path = tmp_path / "params.json"

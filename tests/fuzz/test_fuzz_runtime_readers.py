@@ -28,6 +28,7 @@ import pytest
 
 import can_bridge
 from ampc_jax.cli import main
+from ampc_jax.results import Status
 from ampc_jax.runtime.artefact import ArtefactError, read_artefact, seal_manifest
 from ampc_jax.runtime.runcheck import check_run
 from ampc_jax.runtime.signals import BUS_FIELDS
@@ -121,7 +122,13 @@ def _write_run(d: Path, *, finish: bool) -> None:
                 i, 10**9 + i, "" if ok else "solve failed (status 4)", "" if ok else "step"
             )
             seq += ok
-            row.update(stepped=True, sent=ok, seq=seq if ok else -1, iterations=7, status=0)
+            row.update(
+                stepped=True,
+                sent=ok,
+                seq=seq if ok else -1,
+                iterations=7,
+                status=int(Status.SOLVED),
+            )
             row.update(compute_ms=1.0, margin_ms=20.0 if ok else float("nan"))
             row.update({f"bus_{n}": 0.1 * (j + i) for j, n in enumerate(BUS_FIELDS)})
             row.update({f"cmd_{w}": 5.0 * i for w in WHEELS})

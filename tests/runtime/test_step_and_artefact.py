@@ -24,7 +24,7 @@ import pytest
 from jax import export
 
 from ampc_jax.closed_loop import config_for, controller_for
-from ampc_jax.results import USABLE_STATUS
+from ampc_jax.results import USABLE_STATUS, Status
 from ampc_jax.runtime.artefact import ARTEFACT_FORMAT, ArtefactError, export_step, load_artefact
 from ampc_jax.runtime.signals import BUS_FIELDS, bus_measurement, bus_vector
 from ampc_jax.runtime.step import (
@@ -52,7 +52,9 @@ TICKS = 6
 WHEELS = ("FL", "FR", "RL", "RR")
 
 
-def _report(status: int = 0, fallback: bool = False, violation: float = 0.0) -> StepReport:
+def _report(
+    status: int = Status.SOLVED, fallback: bool = False, violation: float = 0.0
+) -> StepReport:
     return StepReport(np.int32(7), np.int32(status), np.bool_(fallback), 1e-6, 1e-6, violation)
 
 
@@ -61,8 +63,8 @@ def _report(status: int = 0, fallback: bool = False, violation: float = 0.0) -> 
 
 def test_command_problem_accepts_a_good_command() -> None:
     assert command_problem(np.array([-120.0, -80.0, 350.0, -40.0]), _report()) is None
-    # max_iter_reached (1) is usable: its inputs are applied (USABLE_STATUS)
-    assert command_problem(np.zeros(4), _report(status=1)) is None
+    # max_iter_reached is usable: its inputs are applied (USABLE_STATUS)
+    assert command_problem(np.zeros(4), _report(status=Status.MAX_ITER_REACHED)) is None
     # each range's ends are inside it
     lo = np.array([w.min_nm for w in ACTUATORS.wheels])
     hi = np.array([w.max_nm for w in ACTUATORS.wheels])

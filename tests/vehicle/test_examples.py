@@ -12,6 +12,7 @@ import pytest
 from ampc_jax.closed_loop import SimConfig, baseline_config, config_for, controller_for, simulate
 from ampc_jax.closed_loop.config import SOLVER_OPTIONS
 from ampc_jax.reference import solve_reference
+from ampc_jax.results import Status
 from ampc_jax.vehicle import (
     CONTROL_DT,
     CRUISE,
@@ -240,7 +241,7 @@ def test_third_example_runs_in_closed_loop(heavy):
     assert np.all(lg.u >= lb - 1e-9) and np.all(lg.u <= ub + 1e-9)
     # converged at every step, no fallback, close to the integrated optimum of
     # the step's problem (Clarabel)
-    assert np.all(lg.status == 0), lg.status
+    assert np.all(lg.status == Status.SOLVED), lg.status
     assert not np.any(lg.fallback)
     m = res.metrics()
     assert m["example"] == "test_cruise_heavy" and m["objectives"] == ["LST", "YRT"]
@@ -248,7 +249,7 @@ def test_third_example_runs_in_closed_loop(heavy):
     for k in (3, 12, 19):
         data = jax.tree.map(lambda x, k=k: np.asarray(x[k]), lg.data)
         ref = solve_reference(ctrl.topology, data)
-        assert ref.status == 0
+        assert ref.status == Status.SOLVED
         np.testing.assert_allclose(lg.u[k], np.asarray(ref.u[0]), atol=5.0)
     # the controller drives: the speed follows v_ref (15 -> 16 m/s) within 0.3 m/s
     assert np.max(np.abs(lg.v_x - lg.v_ref)) < 0.3

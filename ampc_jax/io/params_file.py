@@ -44,6 +44,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
+from ..validation import check_relaxation
+
 __all__ = [
     "PARAMS_FORMAT",
     "PREDICTION_MAX_S",
@@ -83,7 +85,6 @@ linearised at the current operating point (eq.CC_system, eq.VSC_system), which
 a vehicle leaves within seconds, and the condensed forms grow as N_p^3
 (:func:`~ampc_jax.problem.limits.condensed_bytes`)."""
 
-_FORMULATIONS = ("local_explicit", "fully_distributed", "virtual_center", "integrated", "none")
 _KEYS = (
     "format",
     "example",
@@ -190,10 +191,7 @@ def _relaxation(value: Any) -> float | None:
         return None
     if hasattr(value, "item"):
         value = value.item()
-    v = _number("solver.relaxation", value)
-    if not 0.0 < v < 2.0:
-        raise ValueError(f"solver.relaxation: expected a value in (0, 2), got {v!r}")
-    return v
+    return check_relaxation(_number("solver.relaxation", value), "solver.relaxation")
 
 
 def _settings(value: Any) -> dict[str, Any] | None:
@@ -227,9 +225,13 @@ def validate_params(doc: Any) -> TunedParams:
     ex = doc.get("example")
     if ex is not None and (not isinstance(ex, str) or not ex):
         raise ValueError(f"example: expected an example name or null, got {_show(ex)}")
-    form = doc.get("formulation", "local_explicit")
-    if form not in _FORMULATIONS:
-        raise ValueError(f"formulation: expected one of {list(_FORMULATIONS)}, got {_show(form)}")
+    from ..closed_loop.config import NO_MPC
+    from ..formulations import DEFAULT_FORMULATION, formulation_names
+
+    form = doc.get("formulation", DEFAULT_FORMULATION)
+    names = [*formulation_names(), NO_MPC]
+    if form not in names:
+        raise ValueError(f"formulation: expected one of {names}, got {_show(form)}")
     solver = doc.get("solver", {})
     if solver is None:
         solver = {}
@@ -461,11 +463,12 @@ def _apply_warm_start(config: Any, model: Any) -> Any:
     from dataclasses import replace
 
     from ..closed_loop.controller import controller_for
+    from ..formulations import formulation_names
 
-    if config.formulation != "local_explicit":
+    if not config.mpc or not config.formulation_info.learned_start:
         raise ValueError(
-            f"warm_start: the start network is for Local Explicit, not formulation "
-            f"{config.formulation!r}"
+            f"warm_start: the start network is for {' or '.join(formulation_names(learned_start=True))}, "
+            f"not formulation {config.formulation!r}"
         )
     try:
         out = replace(config, learned_start=model)

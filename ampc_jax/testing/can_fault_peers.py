@@ -1,8 +1,8 @@
-"""Fault-injecting peers for the issue-21 tests: a socketcand server that can
-stall, die and come back on the same port; a scripted SLCAN serial adapter on
+"""Fault-injecting peers of the CAN bridge's tests and benchmarks: a socketcand
+server that can stall, die and come back on the same port; a scripted SLCAN serial adapter on
 a pty (answers the handshake, acknowledges frames with ``z``, can stall); a
 raw SLCAN host on the bridge's pty. None of them uses the Rust codec: frames
-are checked by cb_peers (cantools + autosar-e2e)."""
+are checked by :mod:`~.can_peers` (cantools + autosar-e2e)."""
 
 from __future__ import annotations
 
