@@ -19,9 +19,9 @@ import time
 from pathlib import Path
 
 import pytest
-from cb_fault_peers import open_raw_host, read_all
 
 import can_bridge
+from ampc_jax.testing.can_fault_peers import open_raw_host, read_all
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -114,7 +114,7 @@ def test_tx_log_a_file_over_the_size_limit_names_the_file(tmp_path: Path) -> Non
         import os, resource, sys, time
         sys.path[:0] = {sys.path!r}
         import can_bridge
-        from cb_fault_peers import open_raw_host, read_all
+        from ampc_jax.testing.can_fault_peers import open_raw_host, read_all
         resource.setrlimit(resource.RLIMIT_FSIZE, (3000, 3000))
         b = can_bridge.Bridge("slcan-pty:", period_ms=5, log_path={str(log)!r})
         b.start()

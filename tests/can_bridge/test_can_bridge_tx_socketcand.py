@@ -7,7 +7,7 @@ answer to ``< echo >``). docs/bus-safety.md states the rule, the residual
 and its measured bound.
 
 A socketcand server relays between its clients as one bus
-(cb_fault_peers.SocketcandBus), stamping each frame as it writes it to the
+(ampc_jax.testing.can_fault_peers.SocketcandBus), stamping each frame as it writes it to the
 bus; each frame's age is that stamp against the bridge's candump log.
 """
 
@@ -20,10 +20,10 @@ import time
 from pathlib import Path
 
 import pytest
-from cb_fault_peers import SocketcandBus, candump_tx, frame_ages
-from cb_peers import CmdChecker
 
 import can_bridge
+from ampc_jax.testing.can_fault_peers import SocketcandBus, candump_tx, frame_ages
+from ampc_jax.testing.can_peers import CmdChecker
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -20,10 +20,10 @@ from pathlib import Path
 import can
 import e2e.p01
 import pytest
-from cb_fault_peers import candump_tx, frame_ages, open_raw_host
-from cb_peers import data_id
 
 import can_bridge
+from ampc_jax.testing.can_fault_peers import candump_tx, frame_ages, open_raw_host
+from ampc_jax.testing.can_peers import data_id
 from ampc_jax.vehicle.actuators import ACTUATORS, bridge_kwargs, load_limits
 
 pytestmark = pytest.mark.timeout(60)
