@@ -10,9 +10,11 @@ its metrics and its timing replay (section "Experimental Studies").
 * :mod:`~.loop` -- the scan over control periods, :func:`simulate`, and the
   static :class:`Simulator`'s builder :func:`simulator_for`;
 * :mod:`~.metrics` -- :class:`SimResult` (e_sub, iterations, tracking, warnings);
-* :mod:`~.timing` -- eq.t_ratio by replay.
+* :mod:`~.timing` -- eq.t_ratio by replay;
+* :mod:`~.compile` -- how a command's programs compile (options, several at once).
 """
 
+from .compile import LOOP_COMPILER_OPTIONS, Compiler, loop_compiler_options
 from .config import (
     DURATION_MAX,
     MU_MAX,
@@ -30,10 +32,21 @@ from .config import (
 )
 from .controller import Controller, ControllerState, DriverInputs, StepInfo, controller_for
 from .log import SimLog
-from .loop import Simulator, run_closed_loop, simulate, simulate_batch, simulator_for
+from .loop import (
+    PreparedRun,
+    Simulator,
+    compile_run,
+    finish,
+    prepare,
+    run_closed_loop,
+    simulate,
+    simulate_batch,
+    simulator_for,
+    time_run,
+)
 from .metrics import SimResult
 from .shadow import IntegratedShadow, shadow_for
-from .timing import replay_timing
+from .timing import ReplayPrograms, lower_replay, replay_programs, replay_timing
 
 
 def __getattr__(name: str) -> object:
@@ -44,16 +57,20 @@ def __getattr__(name: str) -> object:
 
 
 __all__ = [
+    "LOOP_COMPILER_OPTIONS",
     "DURATION_MAX",
     "MU_MAX",
     "NO_MPC",
     "PAPER_SOLVER_OPTIONS",
+    "Compiler",
     "Controller",
     "ControllerParams",
     "ControllerState",
     "DriverInputs",
     "IntegratedShadow",
     "LoopParams",
+    "PreparedRun",
+    "ReplayPrograms",
     "SimConfig",
     "SimLog",
     "SimResult",
@@ -62,14 +79,21 @@ __all__ = [
     "baseline_config",
     "check_duration",
     "check_mu",
+    "compile_run",
     "config_for",
     "controller_for",
+    "finish",
+    "loop_compiler_options",
     "loop_formulations",
+    "lower_replay",
+    "prepare",
+    "replay_programs",
     "replay_timing",
     "run_closed_loop",
     "shadow_for",
     "simulate",
     "simulate_batch",
     "simulator_for",
+    "time_run",
     "with_settings",
 ]

@@ -50,6 +50,7 @@ from ..vehicle.manoeuvres import scenario as scenario_spec
 from ..vehicle.models import yaw_rate_reference
 from ..vehicle.params import CONTROL_DT, VehicleParams
 from ..vehicle.plant import measure, plant_step
+from .compile import loop_compiler_options
 from .config import (
     LoopParams,
     SimConfig,
@@ -65,12 +66,17 @@ from .shadow import IntegratedShadow, shadow_for
 from .timing import replay_timing
 
 __all__ = [
+    "PreparedRun",
     "SimLog",
     "Simulator",
+    "compile_run",
+    "finish",
+    "prepare",
     "run_closed_loop",
     "simulate",
     "simulate_batch",
     "simulator_for",
+    "time_run",
 ]
 
 
@@ -265,23 +271,134 @@ _run_jit = jax.jit(run_closed_loop, static_argnums=(0, 3))
 _COMPILED: dict[Any, Any] = {}
 
 
-def _compiled_run(
-    sim: Simulator, sc: Scenario, params: LoopParams, n: int, fault: Any
-) -> tuple[Any, float]:
-    """AOT-compiled closed loop, cached per static structure (simulator, steps,
-    dtype, the parameters' tree): returns (fn, compile seconds; 0 on a cache hit)."""
+class PreparedRun(NamedTuple):
+    """One scenario's closed loop, traced and lowered, before its compile (:func:`prepare`).
+
+    ``lowered`` is None when this process already compiled the same program
+    (``compiled`` holds it). Compile ``lowered`` with
+    :func:`~ampc_jax.closed_loop.compile.loop_compiler_options` (or several at once,
+    :class:`~ampc_jax.closed_loop.compile.Compiler`), then :func:`finish`.
+    """
+
+    spec: ScenarioSpec
+    config: SimConfig
+    scenario: Scenario
+    params: LoopParams
+    fault: Any
+    n_steps: int
+    key: Any
+    lowered: Any
+    compiled: Any
+    lower_time: float
+
+    def log_shapes(self) -> SimLog:
+        """The log's shapes and dtypes (``jax.ShapeDtypeStruct`` leaves, a leading
+        step axis), without running the loop."""
+        out = self.lowered.out_info if self.lowered is not None else self.compiled.out_info
+        return jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype), out)
+
+
+def prepare(
+    scenario: str | ScenarioSpec,
+    config: SimConfig | None = None,
+    *,
+    duration: float | None = None,
+    mu: float | None = None,
+    fault: Any = None,
+    dtype: Any = None,
+) -> PreparedRun:
+    """Check the arguments of :func:`simulate` and trace and lower its closed loop
+    (the part of a compile that holds the GIL); nothing is compiled or run."""
+    t0 = time.perf_counter()
+    spec = scenario_spec(scenario)
+    config = config or config_for(spec)
+    if mu is not None and np.size(check_mu(mu)) != 1:
+        raise ValueError(
+            f"mu: expected one friction value (simulate_batch runs several), got {mu!r}"
+        )
+    sc = spec.scenario if mu is None else spec.scenario._replace(mu=np.asarray(mu, np.float64))
+    dur = check_duration(spec.duration if duration is None else duration)
+    n = max(1, int(round(dur / CONTROL_DT)))
+    dtype = dtype or jnp.result_type(float)
+    sc = _cast(sc, dtype)
+    fault_arr = np.zeros((n,), bool) if fault is None else np.asarray(fault, bool)
+    if fault_arr.shape != (n,):
+        raise ValueError(
+            f"fault: expected a ({n},) mask (one entry per control step), got shape "
+            f"{fault_arr.shape}"
+        )
+    params = config.loop_params(dtype)
+    sim = simulator_for(config)
     key = (
         sim,
         n,
         jax.tree.structure(params),
         tuple(jnp.result_type(x).name for x in jax.tree.leaves(params)),
     )
-    if key in _COMPILED:
-        return _COMPILED[key], 0.0
+    compiled = _COMPILED.get(key)
+    lowered = None if compiled is not None else _run_jit.lower(sim, sc, params, n, fault_arr)
+    return PreparedRun(
+        spec, config, sc, params, fault_arr, n, key, lowered, compiled, time.perf_counter() - t0
+    )
+
+
+def compile_run(prep: PreparedRun) -> tuple[Any, float]:
+    """Compile ``prep`` here (:data:`~.compile.LOOP_COMPILER_OPTIONS`): (program, seconds)."""
+    if prep.lowered is None:
+        return prep.compiled, 0.0
     t0 = time.perf_counter()
-    fn = _run_jit.lower(sim, sc, params, n, fault).compile()
-    _COMPILED[key] = fn
+    fn = prep.lowered.compile(compiler_options=loop_compiler_options() or None)
     return fn, time.perf_counter() - t0
+
+
+def finish(
+    prep: PreparedRun,
+    compiled: Any,
+    compile_seconds: float,
+    *,
+    timing: bool = False,
+    repeats: int = 3,
+    time_runs: bool = True,
+) -> SimResult:
+    """Run the compiled closed loop of ``prep`` (:func:`simulate`'s second half).
+
+    ``time_runs`` False: the run time is the first execution's alone; time the
+    run later with :func:`time_run` (e.g. once other programs have compiled:
+    a compile beside the run slows it).
+    """
+    _COMPILED[prep.key] = compiled
+    sc, params, fault_arr = prep.scenario, prep.params, prep.fault
+    t0 = time.perf_counter()
+    log = jax.block_until_ready(compiled(sc, params, fault_arr))
+    first = time.perf_counter() - t0
+    log_np = jax.tree.map(np.asarray, log)
+    spent = prep.lower_time + compile_seconds if prep.lowered is not None else 0.0
+    res = SimResult(
+        log_np,
+        prep.config,
+        prep.spec.name,
+        prep.spec.focus,
+        prep.n_steps * CONTROL_DT,
+        first,
+        spent,
+        first_run_time=first,
+    )
+    if time_runs:
+        time_run(prep, res)
+    if timing and prep.config.mpc:
+        res.timing = replay_timing(prep.config, log_np, repeats=repeats)
+    return res
+
+
+def time_run(prep: PreparedRun, res: SimResult) -> SimResult:
+    """Set ``res.wall_time``: the run time of the compiled loop of ``prep`` after its
+    first execution (:func:`_warm_wall_time`); returns ``res``."""
+    compiled = _COMPILED[prep.key]
+    sc, params, fault_arr = prep.scenario, prep.params, prep.fault
+    res.wall_time = _warm_wall_time(
+        lambda: compiled(sc, params, fault_arr), res.first_run_time or 0.0
+    )
+    return res
 
 
 def simulate_batch(
@@ -304,12 +421,17 @@ def simulate_batch(
     if mu is not None:
         scenarios = scenarios._replace(mu=jnp.asarray(check_mu(mu), dtype))
     sim = simulator_for(config)
+    opts = loop_compiler_options() or None
     if params is None:
         p = config.loop_params(dtype)
-        return jax.jit(jax.vmap(lambda sc: run_closed_loop(sim, sc, p, n_steps)))(scenarios)
-    return jax.jit(jax.vmap(lambda sc, pp: run_closed_loop(sim, sc, pp, n_steps)))(
-        scenarios, params
+        run = jax.jit(
+            jax.vmap(lambda sc: run_closed_loop(sim, sc, p, n_steps)), compiler_options=opts
+        )
+        return run(scenarios)
+    run = jax.jit(
+        jax.vmap(lambda sc, pp: run_closed_loop(sim, sc, pp, n_steps)), compiler_options=opts
     )
+    return run(scenarios, params)
 
 
 def simulate(
@@ -337,36 +459,8 @@ def simulate(
     dtype : float64 (default with x64) or float32.
     timing : replay the run for eq.t_ratio (:func:`replay_timing`).
     """
-    spec = scenario_spec(scenario)
-    config = config or config_for(spec)
-    if mu is not None and np.size(check_mu(mu)) != 1:
-        raise ValueError(
-            f"mu: expected one friction value (simulate_batch runs several), got {mu!r}"
-        )
-    sc = spec.scenario if mu is None else spec.scenario._replace(mu=np.asarray(mu, np.float64))
-    dur = check_duration(spec.duration if duration is None else duration)
-    n = max(1, int(round(dur / CONTROL_DT)))
-    dtype = dtype or jnp.result_type(float)
-    sc = _cast(sc, dtype)
-    fault_arr = jnp.zeros((n,), bool) if fault is None else jnp.asarray(fault, bool)
-    if fault_arr.shape != (n,):
-        raise ValueError(
-            f"fault: expected a ({n},) mask (one entry per control step), got shape "
-            f"{fault_arr.shape}"
-        )
-    params = config.loop_params(dtype)
-    compiled, t_compile = _compiled_run(simulator_for(config), sc, params, n, fault_arr)
-    t0 = time.perf_counter()
-    log = jax.block_until_ready(compiled(sc, params, fault_arr))
-    first = time.perf_counter() - t0
-    wall = _warm_wall_time(lambda: compiled(sc, params, fault_arr), first)
-    log_np = jax.tree.map(np.asarray, log)
-    res = SimResult(
-        log_np, config, spec.name, spec.focus, n * CONTROL_DT, wall, t_compile, first_run_time=first
-    )
-    if timing and config.mpc:
-        res.timing = replay_timing(config, log, repeats=repeats)
-    return res
+    prep = prepare(scenario, config, duration=duration, mu=mu, fault=fault, dtype=dtype)
+    return finish(prep, *compile_run(prep), timing=timing, repeats=repeats)
 
 
 def _warm_wall_time(run: Callable[[], Any], first: float) -> float:

@@ -41,6 +41,11 @@ def _min(x: np.ndarray) -> float:
     return _finite(x, np.min)
 
 
+def _plain(x: Any) -> Any:
+    """A settings value as JSON has it (bool, int or float)."""
+    return x if isinstance(x, (bool, int, np.bool_)) else float(x)
+
+
 def _rms(x: np.ndarray) -> float:
     x = np.asarray(x, float)
     return float(np.sqrt(np.mean(x**2))) if x.size else float("nan")
@@ -119,6 +124,8 @@ class SimResult:
                 if isinstance(c.enabled_rho_scale, tuple)
                 else c.enabled_rho_scale
             ),
+            "dtype": np.asarray(lg.v_x).dtype.name,
+            "settings_changed": self.settings_changed(),
             "steps": int(len(lg.t)),
             "duration_s": self.duration,
             "focus_s": list(self.focus),
@@ -167,6 +174,9 @@ class SimResult:
             m["t_distributed_median_us"] = _pct(self.timing["t_distributed"], 50) * 1e6
             m["t_integrated_median_us"] = _pct(self.timing["t_integrated"], 50) * 1e6
             m["integrated_iterations_p50"] = _pct(self.timing["integrated_iterations"], 50)
+            load = self.timing.get("load")
+            if load is not None:
+                m["r_time_load"] = dict(load)
             m["timing_note"] = self.timing_note()
         m["warnings"] = self.warnings()
         return m
@@ -180,7 +190,8 @@ class SimResult:
         * control steps that stopped at ``max_iter`` without meeting eps_r/eps_s,
           or fell back (failed or non-finite solve, previous command held);
         * steps where the shadow integrated MPC did not converge: e_sub there
-          compares with an unconverged reference.
+          compares with an unconverged reference;
+        * r_time timed on a busy machine (:meth:`timing_busy`).
         """
         lg, c = self.log, self.config
         out = []
@@ -215,11 +226,44 @@ class SimResult:
                         f"the shadow integrated MPC did not converge on {bad} of {n} steps: "
                         "e_sub there compares with an unconverged reference"
                     )
+        busy = self.timing_busy()
+        if busy:
+            out.append(busy)
         return out
+
+    def settings_changed(self) -> dict[str, dict[str, Any]]:
+        """The example's settings this run changed (``--set``, a tuned-parameters
+        file): field -> ``{"value": ..., "default": ...}`` (empty: the defaults)."""
+        st = self.config.settings
+        default = self.config.vehicle_example.settings_type()
+        out = {}
+        for name in st.field_names():
+            v, d = _plain(getattr(st, name)), _plain(getattr(default, name))
+            if v != d:
+                out[name] = {"value": v, "default": d}
+        return out
+
+    def timing_busy(self) -> str | None:
+        """A sentence when the r_time replay ran on a busy machine (a 1-minute load
+        average above this process's cores, at its start or end), else None: the
+        times then include waits for other processes, in spikes."""
+        load = (self.timing or {}).get("load")
+        if not load:
+            return None
+        seen = [x for x in (load.get("start"), load.get("end")) if x is not None]
+        cores = load.get("cores") or 1
+        if not seen or max(seen) <= cores:
+            return None
+        return (
+            f"r_time was timed at load {max(seen):.1f} on {cores} core(s): each step's time "
+            "includes waits for other processes (spikes in the r_time panel); time it on an "
+            "idle machine for the paper's comparison"
+        )
 
     def timing_note(self) -> str:
         return (
-            "per step, median of repeats of one compiled call: full control step "
+            "per step, fastest of repeats of one compiled call (after an untimed one): "
+            "full control step "
             "(make_data output -> local costs H_j/E_j, rho (eq.opt_ro), Cholesky, "
             "ADMM while_loop to tolerance, result) for Local Explicit and for IntegratedADMM "
             f"(same tolerances eps_r={self.config.tol_primal:g}, eps_s={self.config.tol_dual:g}, "

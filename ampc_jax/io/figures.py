@@ -235,6 +235,15 @@ def convergence(res: Any) -> Any:
         axs[1, 2].plot(lg.t, r, lw=1)
         axs[1, 2].axhline(1.0, color="r", lw=0.8)
         axs[1, 2].set_ylabel("r_time")
+        load = res.timing.get("load") or {}
+        seen = [x for x in (load.get("start"), load.get("end")) if x is not None]
+        busy = res.timing_busy() if hasattr(res, "timing_busy") else None
+        where = f"timed at load {max(seen):.1f} on {load.get('cores')} core(s)" if seen else "timed"
+        axs[0, 2].set_title(
+            where + (": load-sensitive, spikes are waits" if busy else ""),
+            fontsize=8,
+            color="tab:red" if busy else "0.3",
+        )
         axs[1, 1].plot(
             lg.t,
             res.timing["integrated_iterations"],

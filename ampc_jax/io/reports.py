@@ -20,6 +20,7 @@ from ..formulations.registry import formulation_info
 from ..vehicle.params import WHEELS
 
 __all__ = [
+    "FIGURES",
     "comparison_line",
     "summary_lines",
     "write_figures",
@@ -109,24 +110,35 @@ def write_metrics(metrics: dict[str, Any], path: str | Path) -> Path:
     return path
 
 
-def write_figures(results: list[Any], out: str | Path, stem: str = "") -> list[Path]:
-    """Write the figures of ``results`` (the first is the main run) into ``out``."""
+FIGURES = ("vehicle_response", "wheel_torques", "convergence", "yaw_error")
+"""The figures of a run, in the order written."""
+
+
+def write_figures(
+    results: list[Any], out: str | Path, stem: str = "", only: tuple[str, ...] = FIGURES
+) -> list[Path]:
+    """Write the figures of ``results`` (the first is the main run) into ``out``:
+    those of :data:`FIGURES` named in ``only`` that the runs have (``convergence``
+    needs an MPC, ``yaw_error`` a second run)."""
     from . import figures
 
     out = Path(out)
     main = results[0]
-    paths = [
-        figures.save(figures.vehicle_response(results), out / f"{stem}vehicle_response.png"),
-        figures.save(figures.wheel_torques(main), out / f"{stem}wheel_torques.png"),
-    ]
-    if main.config.mpc:
+    draw = {
+        "vehicle_response": lambda: figures.vehicle_response(results),
+        "wheel_torques": lambda: figures.wheel_torques(main),
         # without the shadow (--no-shadow) its e_sub panels say so
-        paths.append(figures.save(figures.convergence(main), out / f"{stem}convergence.png"))
-    if len(results) > 1:
-        paths.append(
-            figures.save(figures.yaw_error_comparison(results), out / f"{stem}yaw_error.png")
-        )
-    return paths
+        "convergence": (lambda: figures.convergence(main)) if main.config.mpc else None,
+        "yaw_error": (lambda: figures.yaw_error_comparison(results)) if len(results) > 1 else None,
+    }
+    unknown = [n for n in only if n not in FIGURES]
+    if unknown:
+        raise ValueError(f"only: expected some of {list(FIGURES)}, got {unknown}")
+    return [
+        figures.save(draw[name](), out / f"{stem}{name}.png")
+        for name in FIGURES
+        if name in only and draw[name] is not None
+    ]
 
 
 def summary_lines(m: dict[str, Any]) -> list[str]:

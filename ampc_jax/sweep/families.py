@@ -319,8 +319,40 @@ def _generated_steps(
 
 
 # ------------------------------------------------------------------ closed-loop manoeuvres
+LATERAL_DEMAND_MAX = 0.95
+"""The largest lateral acceleration a drawn lane change asks of the road, as a
+fraction of mu g (:func:`lateral_demand`): the paper's cruise lane change asks
+9.34 m/s^2 on mu = 1, 0.95 mu g. Rule: a case drawing more has its lane offset
+scaled down to this; reason: a path asking more than the road gives cannot be
+followed by any controller: the car spins out, slows to a crawl, and a rear
+wheel given full torque spins up (the 32 cases of seed 0 drew up to 1.56 mu g;
+every case over 1.25 spun, the rear slip ratio, divided by the 1 m/s floor
+of a stopped car, reaching 600), which a weight tuner's loss then chases."""
+
+
+def lateral_demand(scenario: Any, dt: float = 0.01) -> float:
+    """The peak lateral acceleration (m/s^2) the path of a speed-tracking
+    ``scenario`` asks at its reference speed: max over t of |y''(X(t))| v(t)^2,
+    with X(t) the distance covered at the reference speed v(t) from X = 0 and
+    y the sum of quintic lane-change steps (:func:`~ampc_jax.vehicle.manoeuvres.path_y`:
+    y''(X) = sum_k dy_k 60 u (1 - u)(1 - 2u) / L_k^2, u = (X - x0_k) / L_k)."""
+    st, sv = np.asarray(scenario.speed_t, float), np.asarray(scenario.speed_v, float)
+    t = np.arange(0.0, float(st.max()) + 60.0, dt)
+    v = np.interp(t, st, sv)
+    x = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * dt)])
+    p = scenario.path
+    x0, x1, dy = (np.asarray(a, float) for a in (p.x0, p.x1, p.dy))
+    keep = dy != 0.0
+    x0, x1, dy = x0[keep], x1[keep], dy[keep]
+    L = x1 - x0
+    u = np.clip((x[:, None] - x0) / L, 0.0, 1.0)
+    ypp = np.sum(dy * 60.0 * u * (1.0 - u) * (1.0 - 2.0 * u) / L**2, axis=1)
+    return float(np.max(np.abs(ypp) * v**2))
+
+
 def _cruise_manoeuvres(n: int, seed: int, start: int, *, dtype: Any = None) -> LoopCases:
-    """The cruise lane change with friction, speed profile and lane offset drawn per case."""
+    """The cruise lane change with friction, speed profile and lane offset drawn per case;
+    a lane offset asking more than :data:`LATERAL_DEMAND_MAX` mu g is scaled down to it."""
     from ..closed_loop.config import config_for
     from ..vehicle.manoeuvres import (
         double_lane_change,
@@ -334,24 +366,41 @@ def _cruise_manoeuvres(n: int, seed: int, start: int, *, dtype: Any = None) -> L
     rngs = [case_rng(seed, start + i, stream=2) for i in range(n)]
     mu = _uniform(rngs, 0.5, 1.0)
     speed = _uniform(rngs, 0.7, 1.15)  # factor on the profile's speeds
-    offset = _uniform(rngs, 1.5, 3.5)  # m, both lane changes (the steering amplitude)
+    drawn = _uniform(rngs, 1.5, 3.5)  # m, both lane changes (the steering amplitude)
+    offset = drawn.copy()
+    demand = np.zeros(n)
+    config = config_for(spec)
+    g = config.vehicle.g
+
+    def case(i: int, off: float) -> Any:
+        path = join_paths(single_lane_change(25.0, 30.0, off), double_lane_change(85.0, -off))
+        v = [18.0, 18.0, 11.0, 11.0, 17.0]
+        return make_scenario(
+            mu[i],
+            18.0 * speed[i],
+            path,
+            ([0.0, 1.0, 4.5, 6.0, 12.0], [s * speed[i] for s in v]),
+        )
+
     scs = []
     for i in range(n):
-        path = join_paths(
-            single_lane_change(25.0, 30.0, offset[i]), double_lane_change(85.0, -offset[i])
-        )
-        v = [18.0, 18.0, 11.0, 11.0, 17.0]
-        scs.append(
-            make_scenario(
-                mu[i],
-                18.0 * speed[i],
-                path,
-                ([0.0, 1.0, 4.5, 6.0, 12.0], [s * speed[i] for s in v]),
-            )
-        )
+        sc = case(i, drawn[i])
+        ratio = lateral_demand(sc) / (mu[i] * g)  # linear in the offset
+        if ratio > LATERAL_DEMAND_MAX:
+            offset[i] = drawn[i] * LATERAL_DEMAND_MAX / ratio
+            sc = case(i, offset[i])
+        demand[i] = min(ratio, LATERAL_DEMAND_MAX)
+        scs.append(sc)
     stacked = jax.tree.map(lambda *x: np.stack(x), *scs)
-    cols = {"case": np.arange(start, start + n), "mu": mu, "speed_scale": speed, "offset": offset}
-    return LoopCases(config_for(spec), stacked, spec.n_steps, cols)
+    cols = {
+        "case": np.arange(start, start + n),
+        "mu": mu,
+        "speed_scale": speed,
+        "offset": offset,
+        "offset_drawn": drawn,
+        "lateral_demand_mu_g": demand,
+    }
+    return LoopCases(config, stacked, spec.n_steps, cols)
 
 
 def _stability_manoeuvres(n: int, seed: int, start: int, *, dtype: Any = None) -> LoopCases:
@@ -433,7 +482,8 @@ register_family(
         "cruise_lane_change",
         "loop",
         "the cruise lane change (16 s) with friction 0.5..1, speeds x0.7..1.15 and "
-        "lane offsets 1.5..3.5 m drawn per case",
+        "lane offsets 1.5..3.5 m drawn per case (an offset asking over 0.95 mu g of "
+        "lateral acceleration scaled down to it)",
         _cruise_manoeuvres,
         ("dtype",),
         "cruise",
