@@ -13,7 +13,8 @@ import json
 from pathlib import Path
 from typing import Any
 
-from .args import arg_type, at_least_one, fail, flag_error, output_dir, positive_finite
+from .args import arg_type, at_least_one, fail, flag_error, positive_finite
+from .outdir import add_force, claim_dir
 
 __all__ = ["add_tune_command", "cmd_tune"]
 
@@ -312,7 +313,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
     print(header)
     if args.heldout_cases < (0 if args.objective == "warm_start" else 1):
         return fail(f"--heldout-cases: expected an integer >= 1, got {args.heldout_cases}")
-    problem = output_dir(args.out)
+    problem = claim_dir(args.out, args.force)
     if problem:
         return fail(problem)
     out = Path(args.out)
@@ -460,4 +461,5 @@ def add_tune_command(sub: Any) -> None:
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar (default: shown)")
     p.add_argument("--out", required=True, help="output directory (required)")
+    add_force(p)
     p.set_defaults(func=cmd_tune)
