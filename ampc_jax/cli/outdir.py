@@ -13,8 +13,8 @@ sweep resumes it, and the sweep itself refuses one of another sweep
 Rule: a command that fails (a non-zero exit or an exception) removes what it
 created and left empty: the empty files under the directories it created,
 and those directories once empty; in an ``--out`` that existed before, only
-the empty files it wrote at its top level (modified since the command
-started), the directory itself kept. Reason: failed commands left empty
+the empty files at its top level that it wrote (new, or changed since it
+claimed the directory), the directory itself kept. Reason: failed commands left empty
 directories behind, and ``ampc run`` on a device that would not open a
 0-byte ``bridge.log``.
 
@@ -26,7 +26,6 @@ directories behind, and ``ampc run`` on a device that would not open a
 from __future__ import annotations
 
 import os
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -42,10 +41,9 @@ FORCE_HELP = (
 
 _created: list[Path] = []
 """The directories the running command created, outermost first."""
-_kept: list[Path] = []
-"""The output directories it was given that existed before."""
-_start = [0.0]
-"""When it started (``time.time()``)."""
+_kept: list[tuple[Path, dict[str, tuple[int, int]]]] = []
+"""The output directories it was given that existed before, each with its
+top-level files' (size, mtime in ns) when it was claimed."""
 
 
 def add_force(parser: Any, help: str = FORCE_HELP) -> None:
@@ -57,7 +55,6 @@ def begin() -> None:
     """A command starts: it has created nothing yet."""
     _created.clear()
     _kept.clear()
-    _start[0] = time.time()
 
 
 def _entries(path: Path) -> list[str]:
@@ -88,7 +85,7 @@ def claim_dir(
             f"{flag}, or give --force to write into it"
         )
     if out.is_dir():
-        _kept.append(out)
+        _kept.append((out, {n: _stamp(out / n) for n in names}))
     missing = []
     p = out.absolute()
     while not p.exists() and p != p.parent:
@@ -125,9 +122,10 @@ def finish(code: int) -> None:
     kept, _kept[:] = list(_kept), []
     if code == 0:
         return
-    for d in kept:
+    for d, before in kept:
         for name in _entries(d):
-            _remove_if_empty(d / name, since=_start[0])
+            if before.get(name) != _stamp(d / name):  # this command's
+                _remove_if_empty(d / name)
     for top in reversed(created):
         if not top.is_dir():
             continue
@@ -140,12 +138,19 @@ def finish(code: int) -> None:
                 pass
 
 
-def _remove_if_empty(f: Path, since: float | None = None) -> None:
-    """Remove ``f`` if it is an empty regular file (modified at or after ``since``)."""
+def _stamp(f: Path) -> tuple[int, int]:
+    """(size, mtime in ns) of ``f`` without following a link; (-1, -1) if absent."""
     try:
         st = f.lstat()
-        if f.is_file() and not f.is_symlink() and st.st_size == 0:
-            if since is None or st.st_mtime >= since - 0.01:
-                f.unlink()
+    except OSError:
+        return (-1, -1)
+    return (st.st_size, st.st_mtime_ns)
+
+
+def _remove_if_empty(f: Path) -> None:
+    """Remove ``f`` if it is an empty regular file (not a link)."""
+    try:
+        if not f.is_symlink() and f.is_file() and f.lstat().st_size == 0:
+            f.unlink()
     except OSError:
         pass
