@@ -1,5 +1,5 @@
 """The ``ampc`` command line: ``solve``, ``simulate``, ``demo``, ``run``, ``plant``,
-``export``, ``replay``, ``sweep``, ``tune``.
+``export``, ``replay``, ``sweep``, ``sweep-merge``, ``tune``.
 
 Errors go to stderr as ``ampc: error: --flag: message`` with exit code 2 (bad
 input); library warnings as ``ampc: warning: ...`` lines. Nothing in the

@@ -1,11 +1,12 @@
 """One rule for every ``--out``: a non-empty directory (an existing file, for
 ``ampc export``) is refused without ``--force``, before anything compiles or
 opens; a failed command removes what it created and left empty (no empty
-directory, no 0-byte ``bridge.log``)."""
+directory, no 0-byte ``bridge.log``); a sweep's own directory is resumed."""
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 
 import pytest
@@ -23,6 +24,7 @@ def nothing_compiles(monkeypatch):
     import ampc_jax.cli.simulate as simulate
     import ampc_jax.runtime.runner as runner
     import ampc_jax.runtime.step as step
+    import ampc_jax.sweep.run as sweep_run
 
     def refuse(*args, **kwargs):
         raise AssertionError("started after a refusal")
@@ -30,6 +32,7 @@ def nothing_compiles(monkeypatch):
     monkeypatch.setattr(step.RuntimeStep, "compiled", refuse)
     monkeypatch.setattr(runner, "run_controller", refuse)
     monkeypatch.setattr(simulate, "_run", refuse)
+    monkeypatch.setattr(sweep_run, "_step_rows", refuse)
 
 
 def _line(capsys) -> str:
@@ -47,6 +50,7 @@ def _commands(out: str) -> dict[str, list[str]]:
         "plant": ["plant", "--channel", "slcan:/dev/null", "--scenario", SCENARIO, "--out", out],
         "replay": ["replay", out + "_log", "--out", out],
         "tune": ["tune", "--out", out],
+        "sweep": ["sweep", "--family", "cruise_step", "--cases", "4", "--out", out],
     }
 
 
@@ -70,11 +74,11 @@ def test_every_command_with_an_out_has_force_with_its_default():
     have = set()
     for name, p in sub.choices.items():
         flags = {o: a for a in p._actions for o in a.option_strings}
-        if "--out" in flags and name != "sweep":
+        if "--out" in flags:
             assert "--force" in flags, name
             assert flags["--force"].help.endswith("(default: refuse it)"), name
             have.add(name)
-    assert have >= {"simulate", "demo", "run", "plant", "export", "replay", "tune"}
+    assert have >= {"simulate", "demo", "run", "plant", "export", "replay", "tune", "sweep"}
 
 
 def test_export_refuses_an_existing_file(capsys, tmp_path, nothing_compiles):
@@ -131,6 +135,17 @@ def test_run_with_force_still_clears_an_earlier_runs_logs(capsys, tmp_path):
     assert _line(capsys).startswith("ampc: error: --channel: ")
     # the earlier run's logs are gone, and no 0-byte bridge.log of this one is left
     assert sorted(p.name for p in out.iterdir()) == ["empty_but_mine.txt", "notes.txt"]
+
+
+def test_a_sweep_resumes_its_own_out_and_force_never_mixes_two(capsys, tmp_path, nothing_compiles):
+    out = tmp_path / "s"
+    out.mkdir()
+    (out / "sweep.json").write_text(json.dumps({"spec": {"family": "generated"}}))
+    argv = ["sweep", "--family", "cruise_step", "--cases", "4", "--quiet", "--out", str(out)]
+    for extra in ([], ["--force"]):  # a sweep's out: the sweep's own check, --force or not
+        assert main([*argv, *extra]) == 2
+        line = _line(capsys)
+        assert line.startswith("ampc: error: --out: ") and "holds a different sweep" in line
 
 
 def test_claim_dir_notes_only_what_it_created(tmp_path):
