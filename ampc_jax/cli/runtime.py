@@ -21,15 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from .args import (
-    PARAMS_HELP,
-    arg_type,
-    fail,
-    flag_error,
-    output_dir,
-    positive_finite,
-    with_params_file,
-)
+from . import extras
+from .args import PARAMS_HELP, arg_type, fail, flag_error, positive_finite, with_params_file
+from .outdir import add_force, claim_dir, claim_file
 
 __all__ = ["add_runtime_commands"]
 
@@ -183,6 +177,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     exit 2 at once), the plant started, the in-process step compiled, the loop."""
     import os
 
+    needs = extras.BRIDGE + (extras.EXPORT if args.artefact else ())
+    missing = extras.missing_message("run", needs + (extras.PLANT if args.with_plant else ()))
+    if missing:
+        return fail(missing)
     if args.cpus:
         os.sched_setaffinity(0, args.cpus)
     rt_priority, rt_warning, rt_error = _scheduling(args.rt_priority)
@@ -211,7 +209,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         return fail(flag_error(exc, _FLAGS))
     if args.with_plant and args.channel != "slcan-pty:":
         return fail("--with-plant: needs --channel slcan-pty: (the plant opens its pty)")
-    problem = output_dir(args.out)
+    problem = claim_dir(args.out, args.force)
     if problem:
         return fail(problem)
     out = Path(args.out)
@@ -267,6 +265,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             "--out",
             str(out / "plant"),
             "--quiet",
+            "--force",  # OUT is this run's (claimed above), OUT/plant too
         ]
         for f in args.plant_fault or ():
             plant_cmd += ["--fault", f]
@@ -354,6 +353,9 @@ def _run_duration(args: argparse.Namespace) -> float:
 
 def cmd_plant(args: argparse.Namespace) -> int:
     """``ampc plant``: the simulated vehicle on the bus."""
+    missing = extras.missing_message("plant", extras.PLANT)
+    if missing:
+        return fail(missing)
     _x64()
     from ..runtime.faults import SENSOR_FAULTS
     from ..runtime.plant_node import write_report
@@ -367,7 +369,7 @@ def cmd_plant(args: argparse.Namespace) -> int:
         faults = _faults(args.fault, SENSOR_FAULTS)
     except ValueError as exc:
         return fail(flag_error(exc, {"fault": "--fault"}))
-    problem = output_dir(args.out)
+    problem = claim_dir(args.out, args.force)
     if problem:
         return fail(problem)
     out = Path(args.out)
@@ -406,6 +408,9 @@ def _plant_node(args: argparse.Namespace, faults: tuple[Any, ...], out: Path) ->
 
 def cmd_export(args: argparse.Namespace) -> int:
     """``ampc export``: the controller step as a jax.export artefact."""
+    missing = extras.missing_message("export", extras.EXPORT)
+    if missing:
+        return fail(missing)
     _x64()
     from ..runtime.artefact import export_step
     from ..runtime.step import RuntimeStep
@@ -416,9 +421,10 @@ def cmd_export(args: argparse.Namespace) -> int:
         step = RuntimeStep(cfg, "float32" if args.float32 else "float64")
     except ValueError as exc:
         return fail(flag_error(exc, _FLAGS))
+    problem = claim_file(args.out, args.force)
+    if problem:
+        return fail(problem)
     path = Path(args.out)
-    if path.parent and not path.parent.exists():
-        return fail(f"--out {args.out}: the directory {path.parent} does not exist")
     try:
         m = export_step(step, _golden_bus(SCENARIOS[args.scenario]), path, scenario=args.scenario)
     except OSError as exc:  # a FileError: names the file
@@ -433,6 +439,9 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_replay(args: argparse.Namespace) -> int:
     """``ampc replay``: a logged run re-run offline, and with other settings; or
     (``--candump``) a drive's candump log through the controller."""
+    missing = extras.missing_message("replay", extras.BUS)
+    if missing:
+        return fail(missing)
     _x64()
     from ..runtime.replay import replay_run
 
@@ -443,7 +452,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if args.scenario is not None or args.lead_ms is not None:
         flag = "--scenario" if args.scenario is not None else "--lead-ms"
         return fail(f"{flag}: only with --candump (a run directory's run.json names it)")
-    problem = output_dir(args.out)
+    problem = claim_dir(args.out, args.force)
     if problem:
         return fail(problem)
     rho = None
@@ -525,7 +534,7 @@ def _replay_candump(args: argparse.Namespace) -> int:
     lead = 25.0 if args.lead_ms is None else float(args.lead_ms)
     if not 0.0 < lead < 45.0:
         return fail(f"--lead-ms: expected a lead time in (0, 45) ms, got {args.lead_ms!r}")
-    problem = output_dir(args.out)
+    problem = claim_dir(args.out, args.force)
     if problem:
         return fail(problem)
     out = Path(args.out)
@@ -657,6 +666,7 @@ def add_runtime_commands(sub: Any) -> None:
     )
     r.add_argument("--quiet", action="store_true", help="no progress line (default: one a second)")
     r.add_argument("--out", default="run", help="output directory (default: run)")
+    add_force(r)
     r.set_defaults(func=cmd_run)
 
     p = sub.add_parser(
@@ -698,6 +708,7 @@ def add_runtime_commands(sub: Any) -> None:
     )
     p.add_argument("--quiet", action="store_true", help="no progress line (default: one a second)")
     p.add_argument("--out", default="plant", help="output directory (default: plant)")
+    add_force(p)
     p.set_defaults(func=cmd_plant)
 
     e = sub.add_parser(
@@ -713,6 +724,7 @@ def add_runtime_commands(sub: Any) -> None:
     e.add_argument("--float32", action="store_true", help="float32 step (default: float64)")
     e.add_argument("--params", metavar="FILE", default=None, help=PARAMS_HELP)
     e.add_argument("--out", required=True, help="the artefact file to write (required)")
+    add_force(e, "replace an --out file that exists (default: refuse it)")
     e.set_defaults(func=cmd_export)
 
     p = sub.add_parser(
@@ -765,4 +777,5 @@ def add_runtime_commands(sub: Any) -> None:
     )
     p.add_argument("--float32", action="store_true", help="also replay in float32 (default: off)")
     p.add_argument("--out", default="replay", help="output directory (default: replay)")
+    add_force(p)
     p.set_defaults(func=cmd_replay)
