@@ -194,9 +194,7 @@ and 20) at half the products: eq.opt_ro was 62 % to 76 % of a batched setup,
 and the Riccati setup fell from 29.7 to 20.5 us a case-step (issue 30's
 breakdown, docs/bench_peers.md)."""
 
-RHO_RULES: dict[str, Any] = {
-    r.name: r for r in (PowerRho(), ExactRho(), GivenRho(), CarriedRho())
-}
+RHO_RULES: dict[str, Any] = {r.name: r for r in (PowerRho(), ExactRho(), GivenRho(), CarriedRho())}
 """``rho_method`` name -> strategy."""
 
 

@@ -253,9 +253,7 @@ class LocalExplicit(ADMMSolver):
         if self.kkt not in KKT_SOLVES:
             raise ValueError(f"kkt: expected one of {KKT_SOLVES}, got {self.kkt!r}")
         select_rho(self.rho_method, RHO_METHODS)
-        object.__setattr__(
-            self, "rho_refresh", _int_at_least("rho_refresh", self.rho_refresh, 1)
-        )
+        object.__setattr__(self, "rho_refresh", _int_at_least("rho_refresh", self.rho_refresh, 1))
         select_dual_residual(self.dual_residual, DUAL_RESIDUALS)
         object.__setattr__(
             self, "finish_every", _int_at_least("finish_every", self.finish_every, 1)
@@ -516,9 +514,7 @@ class LocalExplicit(ADMMSolver):
         dz = self.dual_rule.dual(rho, mask(Zs - Z_old))  # eq.Convergence's s_j
         primal = jnp.sum(r * r, axis=(1, 2))
         dual = jnp.sum(dz * dz, axis=(1, 2))
-        return ADMMState(
-            Uf.reshape(J, N, U), Z, gamma, st.iteration + 1, primal, dual, st.rho_star
-        )
+        return ADMMState(Uf.reshape(J, N, U), Z, gamma, st.iteration + 1, primal, dual, st.rho_star)
 
     # -- the exact finish -------------------------------------------------------------
     def finisher(self, setup: LocalSetup) -> Any:
