@@ -106,6 +106,10 @@ pub enum Check {
     /// E2E-valid, but a value lies outside its signal's DBC `[min|max]`
     /// (set by the bridge after decoding; the data is not used).
     Implausible,
+    /// In sequence, but its counter steps claim more time than has passed
+    /// since the last believed frame plus one cycle: a burst, or a sender
+    /// faster than its cycle (set by the bridge; the data is not used).
+    FasterThanCycle,
 }
 
 impl Check {
@@ -128,6 +132,7 @@ impl Check {
             Check::BadCrc => "wrong crc",
             Check::InvalidCounter => "counter 15",
             Check::Implausible => "implausible",
+            Check::FasterThanCycle => "faster than its cycle",
         }
     }
 }
@@ -234,8 +239,8 @@ pub enum PStatus {
     Repeated,
     /// The counter jumped, or was (re)anchored (Profile 1 WRONGSEQUENCE, INITIAL).
     WrongSequence,
-    /// The frame itself is broken (CRC, length, counter 15) or its values
-    /// implausible.
+    /// The frame itself is broken (CRC, length, counter 15), its values
+    /// implausible, or it came faster than its cycle.
     Error,
 }
 
@@ -243,15 +248,17 @@ impl Check {
     /// The Profile 1 status mapped onto the state machine's
     /// (`E2E_P01MapStatusToSM`, AUTOSAR 4.2 behaviour); the checks Profile 1
     /// leaves to the receiver map to `Error` (length, counter 15,
-    /// implausible) and `Repeated` (two sources).
+    /// implausible, faster than its cycle) and `Repeated` (two sources).
     pub fn p_status(self) -> PStatus {
         match self {
             Check::Ok | Check::OkSomeLost | Check::Sync => PStatus::Ok,
             Check::Repeated | Check::TwoSources => PStatus::Repeated,
             Check::Initial | Check::WrongSequence => PStatus::WrongSequence,
-            Check::BadLength | Check::BadCrc | Check::InvalidCounter | Check::Implausible => {
-                PStatus::Error
-            }
+            Check::BadLength
+            | Check::BadCrc
+            | Check::InvalidCounter
+            | Check::Implausible
+            | Check::FasterThanCycle => PStatus::Error,
         }
     }
 }
