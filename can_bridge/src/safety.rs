@@ -706,3 +706,6 @@ mod tests {
         }
     }
 }
+
+#[cfg(test)]
+mod limits_tests;

@@ -190,12 +190,12 @@ impl RxSlotState {
             u64::from((counter + 15 - p.counter) % 15).max(1)
         };
         let believed = self.believed.map_or(0, |(t, _)| t);
-        let mut claimed = p.claimed_ns.max(believed).saturating_add(steps * cycle);
-        if claimed > now {
-            claimed = claimed
-                .saturating_sub(elapsed / PACE_TOLERANCE_DIV)
-                .max(now);
-        }
+        let claimed = p.claimed_ns.max(believed).saturating_add(steps * cycle);
+        // a lead over the arrival (claimed - now, if any) gives back 2 % of
+        // the time since the frame before
+        let claimed = claimed
+            .min(now)
+            .max(claimed.saturating_sub(elapsed / PACE_TOLERANCE_DIV));
         if claimed > now.saturating_add(cycle) {
             // The clock restarts at this frame: it claims nothing, and
             // neither does an anchor that came late (a sender catching up,
@@ -285,11 +285,6 @@ impl RxStore {
             bus_errors: 0,
             last_error: None,
         }
-    }
-
-    /// The configuration.
-    pub fn config(&self) -> &RxConfig {
-        &self.cfg
     }
 
     /// The latest usable values of message `m` no older than the state
@@ -397,7 +392,7 @@ impl RxStore {
             if let Err((steps, elapsed)) = slot.keeps_pace(verdict, counter, now_ns, cycle) {
                 verdict = Check::FasterThanCycle;
                 self.last_error = Some(format!(
-                    "{}: counter step {steps} ({} ms) {:.1} ms after the last frame that kept pace comes faster than its {} ms cycle",
+                    "{}: counter step {steps} ({} ms) {:.1} ms after the frame before comes faster than its {} ms cycle",
                     m.name,
                     steps * u64::from(m.cycle_ms),
                     elapsed as f64 / 1e6,
@@ -599,6 +594,9 @@ pub fn run_rx(
 
 #[cfg(test)]
 mod pace_tests;
+
+#[cfg(test)]
+mod store_tests;
 
 #[cfg(test)]
 mod tests {

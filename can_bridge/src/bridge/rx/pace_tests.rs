@@ -248,6 +248,26 @@ fn a_burst_at_the_start_of_a_stream_is_invalid_until_a_window_of_sound_frames() 
     assert!(s.last().unwrap().1.valid);
 }
 
+#[test]
+fn a_claim_of_exactly_one_cycle_beyond_the_arrival_keeps_pace() {
+    // A sound stream on time claims each frame's arrival; a frame two
+    // counter steps on arriving with the last claims one cycle beyond its
+    // arrival: still in pace. One more step at that instant is not.
+    let mut rx = RxStore::new(RxConfig::default());
+    for k in 0..6u64 {
+        rx.on_frame(&frame_of(MOTION, &motion(v0()), k as u8), T0 + k * CYCLE);
+    }
+    let t = T0 + 5 * CYCLE;
+    assert_eq!(
+        rx.on_frame(&frame_of(MOTION, &motion(v0()), 7), t),
+        Check::OkSomeLost
+    );
+    assert_eq!(
+        rx.on_frame(&frame_of(MOTION, &motion(v0()), 8), t),
+        Check::FasterThanCycle
+    );
+}
+
 /// VehicleMotion every `period`, counter +1, `n` frames, healthy speed, the
 /// other messages healthy at 20 ms: the faults counted.
 fn paced(period: u64, n: u64) -> (u64, RxStore) {
