@@ -338,6 +338,19 @@ mod tests {
         assert!((b - bound).abs() < 1e-9, "{b} {bound}");
         // a driven wheel may spin
         assert_eq!(judge([0.0, 0.0, at(90.0), at(90.0)], Some(delta)), None);
+        // exactly at the bound is physical (numbers exact in binary:
+        // 10 + 0.5 + 0.05 x 10 = 11 m/s, 22 rad/s at 0.5 m)
+        let p = Plausibility {
+            wheel_radius_m: 0.5,
+            ..p
+        };
+        assert_eq!(
+            p.wheel_violation([10.0, 0.0, 0.0], &[22.0; 4], Some(0.0), free),
+            None
+        );
+        assert!(p
+            .wheel_violation([10.0, 0.0, 0.0], &[22.001; 4], Some(0.0), free)
+            .is_some());
         // no steering angle, or one beyond 1 rad: 1 rad
         let wide = bound + (1.5 + 0.8 * 1.2) * 0.7;
         for steer in [None, Some(-3.0)] {

@@ -14,7 +14,7 @@
 use super::{lock, Shared};
 use crate::candump::{Dir, LogSender};
 use crate::codec::{N_RX, RX_MESSAGES};
-use crate::e2e::{Check, Receiver, SmConfig, SmState, StateMachine};
+use crate::e2e::{Check, Receiver, SmConfig, StateMachine};
 use crate::frame::CanFrame;
 use crate::plausibility::Plausibility;
 use crate::scheduler::{monotonic_ns, realtime_ns};
@@ -479,8 +479,9 @@ impl RxStore {
                 .is_some_and(|t| now_ns.saturating_sub(t) <= timeout);
             *st = match (b, slot.sm.verdict()) {
                 (_, Err(why)) if fresh || b.is_none() => why,
-                (None, Ok(())) if slot.sm.state() == SmState::Valid => "confirming",
-                (None, _) => "no data",
+                // sound (the state machine says VALID), the first usable
+                // frame still being confirmed
+                (None, _) => "confirming",
                 (Some((t, _)), _) if now_ns.saturating_sub(*t) > timeout => "timeout",
                 (Some(_), Err(why)) => why,
                 (Some(_), Ok(())) => "ok",

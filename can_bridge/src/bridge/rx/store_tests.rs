@@ -113,6 +113,30 @@ fn every_kind_of_frame_is_counted_once_in_its_own_stat() {
 }
 
 #[test]
+fn every_payload_signal_is_held_to_its_dbc_range_the_last_one_too() {
+    // one signal at a time beyond its range, the others sound
+    for (m, i, bad) in [
+        (MOTION, 0, 95.0),
+        (MOTION, 2, 3.5),
+        (WHEELS, 0, -70.0),
+        (WHEELS, 3, -70.0),
+        (STEERING, 0, 1.2),
+        (3, 1, 25.0),
+        (4, 2, 2.3),
+    ] {
+        let mut f = Feed::new();
+        for k in 0..3u64 {
+            f.at(m, &healthy(m), k as u8, k, 0);
+        }
+        let mut v = healthy(m);
+        v[i] = bad;
+        assert_eq!(f.at(m, &v, 3, 3, 0), Check::Implausible, "{m} {i}");
+        let e = f.rx.last_error.clone().unwrap();
+        assert!(e.ends_with("is implausible"), "{e}");
+    }
+}
+
+#[test]
 fn the_errors_name_what_was_wrong_and_by_how_much() {
     let mut f = Feed::new();
     for k in 0..3 {
