@@ -49,7 +49,15 @@ fn every_bound_of_the_limits_is_where_the_documentation_puts_it() {
     assert!(!ok(&with(
         &|c| c.wheels[1].release_nm_per_s = MAX_RATE_NM_PER_S * 1.001
     )));
-    assert!(!ok(&with(&|c| c.safe_release_nm_per_s = 0.0)));
+    // a zero rate is out of the range, said so (not merely a short step)
+    let e = with(&|c| c.safe_release_nm_per_s = 0.0)
+        .validate(PERIOD)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("safe_release_nm_per_s = 0 must be in (0, 2000000] Nm/s"),
+        "{e}"
+    );
     assert!(!ok(&with(&|c| c.safe_release_nm_per_s = f64::INFINITY)));
     // watchdog: period <= hold <= 1 s < safe <= 5 s < fault <= 60 s
     let wd = |h: u64, sa: u64, f: u64| {
