@@ -28,6 +28,14 @@
 //! `cargo test` runs 30,000 inputs; the long run (10^6 by default, or
 //! `CAN_BRIDGE_RX_INPUTS`) is `cargo test --release -- --ignored long_randomised`.
 
+// A test may unwrap: a failed unwrap is a failed test (`Cargo.toml`'s lints).
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    clippy::disallowed_methods
+)]
+
 use can_bridge::bridge::{RxConfig, RxStore};
 use can_bridge::codec::{
     DRIVER_DEMAND, N_RX, RX_MESSAGES, STEERING_STATE, VEHICLE_ACCEL, VEHICLE_MOTION, WHEEL_SPEEDS,
