@@ -918,14 +918,8 @@ mod tests {
         assert!(c.validate().unwrap_err().contains("rx_window"));
     }
 
+    use crate::test_support::cases;
     use proptest::prelude::*;
-
-    fn cases() -> u32 {
-        std::env::var("CAN_BRIDGE_PROPTEST_CASES")
-            .ok()
-            .and_then(|s| s.parse().ok())
-            .unwrap_or(2000)
-    }
 
     /// One scripted frame: counter step (0 = repeat), payload change, CRC fault.
     fn arb_step() -> impl Strategy<Value = (u8, bool, bool)> {
@@ -933,7 +927,7 @@ mod tests {
     }
 
     proptest! {
-        #![proptest_config(ProptestConfig::with_cases(cases()))]
+        #![proptest_config(ProptestConfig::with_cases(cases(2000)))]
 
         /// Whatever arrives: data is used only from a frame with a right CRC
         /// whose counter advanced by 1..=max_delta from the last used or

@@ -32,6 +32,8 @@ pub mod scheduler;
 pub mod slcan;
 pub mod socketcand;
 mod sync;
+#[cfg(test)]
+mod test_support;
 pub mod transport;
 
 #[cfg(feature = "python")]
