@@ -18,11 +18,15 @@ use std::sync::{Mutex, MutexGuard, PoisonError, TryLockError};
 /// * The command slot holds commands already checked (finite, in range, in
 ///   sequence); the transmit thread still limits, rate-limits and ages each
 ///   one at every tick.
-/// * The transmit counters, the log's error text and rate limiter and the
-///   transport's ledger only count, copy or bound diagnostics.
+/// * The transmit counters and the log's error text and rate limiter only
+///   count, copy or bound diagnostics.
+/// * The SLCAN transport's ledger of the lines written to a pty is rebuilt
+///   from empty at every flush: an update cut short can only affect the one
+///   flush after it.
 /// * The received state is judged again on every read against the clock:
 ///   a message is valid only while its last believed frame is younger than
-///   `state_timeout_ms`, so a store that stops being fed goes invalid.
+///   `state_timeout_ms`, so the store of a receive thread that panicked
+///   (and so feeds it no more) is invalid within that time.
 /// * The unit locks (`Mutex<()>`) and the socket slot guard no invariant
 ///   beyond exclusive use, which the guard still gives.
 ///
