@@ -60,6 +60,32 @@ def cache_dir(flag: str | None = None, env: dict[str, str] | None = None) -> Pat
     return Path(base) / "ampc-jax" / "xla"
 
 
+def quiet_xla_logs() -> bool:
+    """Keep XLA's C++ log lines below FATAL off a user's terminal; True if set.
+
+    Rule: ``ampc`` raises absl's minimum log level (XLA's C++ logging) to FATAL
+    unless ``TF_CPP_MIN_LOG_LEVEL=0`` asks for every line (debugging XLA).
+    Reason: on a slow or busy machine XLA's slow-operation alarms log at ERROR a
+    banner of several lines ("Very slow compile? If you want to file a bug, run
+    with envvar XLA_FLAGS=--xla_dump_to=...", "Constant folding an instruction
+    is taking > 1s") about XLA's compile, not about the user's input; a failure
+    of ours reaches the user as a Python exception either way. JAX reads
+    ``TF_CPP_MIN_LOG_LEVEL`` only when it is imported, so the level is set
+    through ``jaxlib.utils.absl_set_min_log_level`` (also after an import).
+    """
+    if os.environ.get("TF_CPP_MIN_LOG_LEVEL") == "0":
+        return False
+    try:
+        from jaxlib import utils
+    except ImportError:  # pragma: no cover - jaxlib is a dependency
+        return False
+    setter = getattr(utils, "absl_set_min_log_level", None)
+    if setter is None:
+        return False
+    setter(3)  # absl: 0 INFO, 1 WARNING, 2 ERROR, 3 FATAL
+    return True
+
+
 def _use_compilation_cache(args: object) -> None:
     """Point JAX's persistent compilation cache at :func:`cache_dir` (before the first
     compilation). A directory that cannot be created turns the cache off with a
@@ -138,6 +164,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run ``ampc`` with ``argv`` (default: the process's); returns the exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    quiet_xla_logs()
     _use_compilation_cache(args)
     outdir.begin()
     code = 1  # an exception: what the command created and left empty is removed

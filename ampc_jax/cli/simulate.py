@@ -265,7 +265,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     problem = claim_dir(args.out, args.force)
     if problem:
         return fail(problem)
-    print(_header(args.scenario, cfg))
+    print(_header(args.scenario, cfg, args.float32))
     out = Path(args.out)
     decomposed = cfg.mpc and cfg.formulation_info.decomposed  # r_time: against the integrated
     timing = decomposed and not args.no_timing and cfg.shadow
@@ -299,19 +299,33 @@ def _parse_floats(flag: str, text: str | None) -> float | tuple[float, ...] | No
     return vals[0] if len(vals) == 1 else vals
 
 
-def _header(scenario: str, cfg: Any) -> str:
-    """The first line printed: the scenario and the solver settings it runs (the
-    example's ``solver_defaults`` where no flag or file gave one)."""
+def _header(scenario: str, cfg: Any, float32: bool = False) -> str:
+    """The first line printed: the scenario and what it runs: the enabled objectives
+    and their rho scales (a disabled objective's is not shown), the solver
+    settings (the example's ``solver_defaults`` where no flag or file gave one),
+    the precision and the example's settings changed by --set or --params."""
+    from ..closed_loop.metrics import settings_changed
+
+    dtype = "float32" if float32 else "float64"
     if not cfg.mpc:
-        return f"ampc simulate: {scenario}, no MPC"
+        return f"ampc simulate: {scenario}, no MPC, {dtype}"
     o = cfg.solver_options()
-    rs = o["rho_scale"]
-    rs = ", ".join(f"{x:g}" for x in rs) if isinstance(rs, list) else f"{rs:g}"
+    rs = cfg.enabled_rho_scale
+    rs = ", ".join(f"{x:g}" for x in rs) if isinstance(rs, tuple) else f"{rs:g}"
+    off = [x for x in cfg.vehicle_example.objectives if x not in cfg.enabled]
+    objs = "+".join(cfg.enabled) + (f" ({', '.join(off)} disabled)" if off else "")
     start = ", learned start" if cfg.learned_start is not None else ""
+    changed = settings_changed(cfg)
+    sets = (
+        "; settings "
+        + ", ".join(f"{k}={v['value']:g} (default {v['default']:g})" for k, v in changed.items())
+        if changed
+        else ""
+    )
     return (
-        f"ampc simulate: {scenario}, {cfg.formulation}, rho scale ({rs}), relaxation "
-        f"{o['relaxation']:g}, Anderson {o['anderson']}{start} (the {cfg.example} example's "
-        f"defaults where no flag or --params gave one)"
+        f"ampc simulate: {scenario}, {cfg.formulation}, {objs}, rho scale {rs}, relaxation "
+        f"{o['relaxation']:g}, Anderson {o['anderson']}{start}, {dtype}{sets} (the "
+        f"{cfg.example} example's solver defaults where no flag or --params gave one)"
     )
 
 
@@ -388,6 +402,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
     spec = SCENARIOS["cruise_lane_change"]
     cfg = config_for(spec)
+    print(
+        "ampc demo: cruise_lane_change, LST+YRT against LST alone; "
+        + (
+            "r_time replay skipped (--no-timing)"
+            if args.no_timing
+            else "then the r_time replay (--no-timing skips it): its timing panel in "
+            "convergence.png is load-sensitive, meaningful on an idle machine"
+        )
+    )
     m, mb, figs = _run(
         spec,
         cfg,

@@ -516,7 +516,12 @@ def _print_table(out: dict[str, Any], T: Any) -> None:
     print(f"residuals    primal {num(out['primal_residual'])}  dual {num(out['dual_residual'])}")
     if out.get("gap") is not None:
         bound = out.get("error_bound")
-        within = "" if bound is None else f"  (inputs within {num(bound)} of the optimum)"
+        within = (
+            ""
+            if bound is None
+            else f"  (inputs within {num(bound)} of the optimum: the 2-norm over every agent's "
+            "inputs and every step of the horizon, in the inputs' own units)"
+        )
         print(f"gap          {num(out['gap'])}{within}")
     if out["rho"]:
         print("rho          " + "  ".join(f"{k}={num(v)}" for k, v in out["rho"].items()))

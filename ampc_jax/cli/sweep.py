@@ -197,8 +197,8 @@ def add_sweep_command(sub: Any) -> None:
         "--family",
         required=True,
         help=(
-            "scenario family: cruise_step, stability_step, generated (single steps) or "
-            "cruise_lane_change (closed loops) (required)"
+            "scenario family: cruise_step, stability_step, generated (single steps), "
+            "cruise_lane_change or stability_manoeuvres (closed loops) (required)"
         ),
     )
     p.add_argument(

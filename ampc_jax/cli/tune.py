@@ -74,7 +74,7 @@ def _loss_figure(history: list[dict[str, Any]], path: Path, title: str) -> None:
 
 def _solver(args: argparse.Namespace, out: Path) -> int:
     from ..io.params_file import write_params
-    from ..tuning.solver import evaluation_table, tune_solver
+    from ..tuning.solver import evaluation_table, evaluation_verdicts, tune_solver
 
     try:
         res = tune_solver(
@@ -126,9 +126,12 @@ def _solver(args: argparse.Namespace, out: Path) -> int:
     _loss_figure(res.history, out / "loss.png", f"{args.family}: K = {args.iterations}")
     rs = ", ".join(f"{x:.4g}" for x in res.rho_scale)
     print(
-        f"tuned rho scale ({', '.join(st['objectives'])}) = {rs}; relaxation {res.relaxation:.4g}"
+        f"tuned rho scale ({', '.join(st['objectives'])}) = {rs}; relaxation "
+        f"{res.relaxation:.4g} (in {st['train_seconds']:.0f} s)"
     )
     print(evaluation_table(res.evaluation))
+    for line in evaluation_verdicts(res.evaluation):
+        print(line)
     for name in ("params.json", "tune.json", "loss.png"):
         print(f"wrote {out / name}")
     return 0
@@ -139,7 +142,7 @@ def _weights(args: argparse.Namespace, out: Path) -> int:
     from ..sweep.families import family
 
     try:
-        from ..tuning.weights import tune_weights
+        from ..tuning.weights import tune_weights, weights_table, weights_verdicts
     except ImportError as exc:
         return fail(f"--objective weights: the weight tuner is not available ({exc})")
     try:
@@ -187,8 +190,15 @@ def _weights(args: argparse.Namespace, out: Path) -> int:
     }
     (out / "tune.json").write_text(json.dumps(doc, indent=2, default=_plain) + "\n")
     _loss_figure(res.history, out / "loss.png", f"{args.family}: weights")
-    print("tuned weights: " + ", ".join(f"{k}={v:.4g}" for k, v in res.settings.items()))
-    print(json.dumps(res.evaluation, indent=2, default=_plain))
+    run = res.evaluation["run"]
+    print(
+        f"tuned weights in {run['tune_seconds']:.0f} s: "
+        + ", ".join(f"{k}={v:.4g}" for k, v in res.settings.items())
+    )
+    print(weights_table(res.evaluation))
+    for line in weights_verdicts(res.evaluation):
+        print(line)
+    print("per case and the run's settings: tune.json")
     for name in ("params.json", "tune.json", "loss.png"):
         print(f"wrote {out / name}")
     return 0
@@ -296,7 +306,12 @@ def _solver_header(args: argparse.Namespace) -> str | int:
             f"where not given; rho scale and relaxation are what is tuned)"
         )
     if args.objective == "weights":
-        return f"ampc tune: weights on {args.family}, the closed loop's solver ({source})"
+        return (
+            f"ampc tune: weights on {args.family}, the closed loop's solver ({source}); "
+            f"{args.steps} Adam steps, each through {args.cases} closed loops, then the "
+            "default and tuned weights run on the training, held-out and example scenarios: "
+            "minutes (the bar shows the estimate)"
+        )
     rs = ", ".join(f"{x:g}" for x in st["rho_scale"])
     return (
         f"ampc tune: warm_start on {args.family}, rho scale ({rs}), relaxation "
@@ -348,7 +363,8 @@ def add_tune_command(sub: Any) -> None:
         "--family",
         default=None,
         help="the scenario family: a step family (cruise_step, stability_step, generated) "
-        "for --objective solver, a loop family (cruise_lane_change) for weights "
+        "for --objective solver, a loop family (cruise_lane_change, stability_manoeuvres) "
+        "for weights "
         "(default: cruise_step, or cruise_lane_change with --objective weights)",
     )
     p.add_argument(

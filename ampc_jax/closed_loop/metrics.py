@@ -46,6 +46,19 @@ def _plain(x: Any) -> Any:
     return x if isinstance(x, (bool, int, np.bool_)) else float(x)
 
 
+def settings_changed(config: Any) -> dict[str, dict[str, Any]]:
+    """The example's settings ``config`` changes (``--set``, a tuned-parameters
+    file): field -> ``{"value": ..., "default": ...}`` (empty: the defaults)."""
+    st = config.settings
+    default = config.vehicle_example.settings_type()
+    out = {}
+    for name in st.field_names():
+        v, d = _plain(getattr(st, name)), _plain(getattr(default, name))
+        if v != d:
+            out[name] = {"value": v, "default": d}
+    return out
+
+
 def _rms(x: np.ndarray) -> float:
     x = np.asarray(x, float)
     return float(np.sqrt(np.mean(x**2))) if x.size else float("nan")
@@ -232,16 +245,8 @@ class SimResult:
         return out
 
     def settings_changed(self) -> dict[str, dict[str, Any]]:
-        """The example's settings this run changed (``--set``, a tuned-parameters
-        file): field -> ``{"value": ..., "default": ...}`` (empty: the defaults)."""
-        st = self.config.settings
-        default = self.config.vehicle_example.settings_type()
-        out = {}
-        for name in st.field_names():
-            v, d = _plain(getattr(st, name)), _plain(getattr(default, name))
-            if v != d:
-                out[name] = {"value": v, "default": d}
-        return out
+        """:func:`settings_changed` of this run's config."""
+        return settings_changed(self.config)
 
     def timing_busy(self) -> str | None:
         """A sentence when the r_time replay ran on a busy machine (a 1-minute load

@@ -154,10 +154,19 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
     if m["formulation"] == NO_MPC:
         lines.append(f"{m['scenario']} [none: {m.get('no_mpc', 'no MPC')}]")
     else:
+        dtype = f"; {m['dtype']}" if m.get("dtype") else ""
         lines.append(
             f"{m['scenario']} [{m['formulation']}; {'+'.join(m['objectives'])}; "
-            f"N_p={m['horizon']}; {'warm' if m['warm_start'] else 'cold'} start]"
+            f"N_p={m['horizon']}; {'warm' if m['warm_start'] else 'cold'} start{dtype}]"
         )
+        changed = m.get("settings_changed") or {}
+        if changed:
+            lines.append(
+                "  settings        "
+                + ", ".join(
+                    f"{k} {v['value']:g} (default {v['default']:g})" for k, v in changed.items()
+                )
+            )
         if formulation_info(m["formulation"]).rho == "one":  # the integrated problem's rho
             scales = f"rho_scale {m['integrated_rho_scale']:g} (integrated)"
         else:

@@ -118,4 +118,9 @@ def _program(sim: Any, n_steps: int, chunk: int) -> Any:
 
         return map_scenarios(one, (sc, pts), chunk=chunk)
 
-    return jax.jit(run)
+    # a closed loop's options (no LLVM optimisation passes): on 2 cores the
+    # 20-case sweep's program compiled in minutes with XLA's defaults and its run
+    # is shorter than that compile (bench/bench_compile.py, "sweep closed loops")
+    from ..closed_loop.compile import loop_compiler_options
+
+    return jax.jit(run, compiler_options=loop_compiler_options() or None)

@@ -42,6 +42,7 @@ from ..problem.data import ProblemData
 from ..problem.topology import Topology
 from ..reference import reference_inputs as batch_reference
 from ..validation import check_count
+from ..vehicle.examples import example
 from .fit import FitSpec, fit
 
 __all__ = [
@@ -51,6 +52,7 @@ __all__ = [
     "Theta",
     "batch_params",
     "evaluate_points",
+    "evaluation_verdicts",
     "pairs_program",
     "point_row",
     "reference_inputs",
@@ -363,10 +365,11 @@ def tune_solver(
     }
     evaluation: dict[str, Any] = {}
     if evaluate:
-        points = {
-            "eq.opt_ro": (1.0, 1.0),
-            "tuned": (rho_scale, relaxation),
-        }
+        points = {"eq.opt_ro": (1.0, 1.0)}
+        if settings["example"]:  # what simulate and solve run without --params
+            d = example(settings["example"]).solver_defaults
+            points[DEFAULTS_ROW] = (d.get("rho_scale", 1.0), float(d.get("relaxation", 1.0)))
+        points["tuned"] = (rho_scale, relaxation)
         sets = [(f"seed {heldout_seed}, N_p {T.horizon}", horizon)]
         if heldout_horizon is not None and int(heldout_horizon) != T.horizon:
             sets.append((f"seed {heldout_seed}, N_p {int(heldout_horizon)}", heldout_horizon))
@@ -397,6 +400,39 @@ def tune_solver(
                 ev["rows"].insert(0, extra["rows"][0])
             evaluation[label] = ev
     return SolverTuning(rho_scale, relaxation, history, evaluation, settings)
+
+
+DEFAULTS_ROW = "example defaults"
+"""The evaluation row of the example's ``solver_defaults`` (rho scale, alpha):
+what ``ampc simulate`` and ``ampc solve`` run when no params.json is given."""
+
+
+def evaluation_verdicts(evaluation: dict[str, Any]) -> list[str]:
+    """One line per held-out set: the tuned point against the command's own
+    defaults (:data:`DEFAULTS_ROW`; eq.opt_ro's choice for a problem of no
+    example), saying when the tuned point is worse.
+
+    Order: fewer cases converged is worse; then the median iterations, then
+    the p95 (lower is better)."""
+    lines = []
+    for label, ev in evaluation.items():
+        rows = {r["name"]: r for r in ev["rows"]}
+        tuned = rows.get("tuned")
+        ref = rows.get(DEFAULTS_ROW) or rows.get("eq.opt_ro")
+        if tuned is None or ref is None:
+            continue
+        key_t = (-tuned["converged"], tuned["median"], tuned["p95"])
+        key_r = (-ref["converged"], ref["median"], ref["p95"])
+        word = "worse than" if key_t > key_r else "as good as" if key_t == key_r else "better than"
+        line = (
+            f"held-out {label}: tuned is {word} the {ref['name']} (median {tuned['median']:.1f} "
+            f"vs {ref['median']:.1f} iterations, p95 {tuned['p95']:.1f} vs {ref['p95']:.1f}, "
+            f"converged {tuned['converged']:.2f} vs {ref['converged']:.2f})"
+        )
+        if key_t > key_r:
+            line += "; keep the defaults (run without this params.json)"
+        lines.append(line)
+    return lines
 
 
 def evaluation_table(evaluation: dict[str, Any]) -> str:

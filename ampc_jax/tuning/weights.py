@@ -71,6 +71,8 @@ __all__ = [
     "soft_max",
     "tune_weights",
     "weight_fields",
+    "weights_table",
+    "weights_verdicts",
     "with_log_weights",
 ]
 
@@ -444,3 +446,59 @@ def tune_weights(
                 for label, s in (("default", default), ("tuned", tuned_settings))
             }
     return WeightsResult(tuned, history, evaluation)
+
+
+# ------------------------------------------------------------------ summary
+_TABLE = (
+    # (column, key of evaluate_settings, format)
+    ("yaw RMS rad/s", "yaw_rms_focus", "{:>13.4f}"),
+    ("x baseline", "yaw_ratio", "{:>10.2f}"),
+    ("rear slip max", "rear_slip_max", "{:>13.3f}"),
+    ("over limit", "cases_over_slip_limit", "{:>10d}"),
+    ("|T| max Nm", "torque_max", "{:>10.0f}"),
+    ("iter p95", "iterations_p95", "{:>8.0f}"),
+    ("fallbacks", "fallbacks", "{:>9d}"),
+)
+
+
+def weights_table(evaluation: dict[str, Any]) -> str:
+    """The evaluation of :func:`tune_weights` as a text table: per evaluation set
+    the default and the tuned weights (means and worst cases of
+    :func:`evaluate_settings`; ``x baseline``: the geometric mean of the
+    baseline's yaw RMS over the controller's, 2 halves the error)."""
+    head = f"  {'set':<24} {'weights':<8} " + " ".join(c for c, _, _ in _TABLE)
+    lines = [head]
+    for name, ev in evaluation.items():
+        if name == "run":
+            continue
+        for label in ("default", "tuned"):
+            row = ev[label]
+            cells = " ".join(fmt.format(row[key]) for _, key, fmt in _TABLE)
+            shown = f"{name} ({row['n_cases']})" if label == "default" else ""
+            lines.append(f"  {shown:<24} {label:<8} {cells}")
+    return "\n".join(lines)
+
+
+def weights_verdicts(evaluation: dict[str, Any]) -> list[str]:
+    """One line per evaluation set: the tuned weights against the example's own
+    (what ``ampc simulate`` runs without --params), saying when they are worse.
+
+    Worse: more cases over the slip limit, or (as many) a larger mean yaw RMS
+    in the focus window, the loss's two terms that a user sees."""
+    lines = []
+    for name, ev in evaluation.items():
+        if name == "run":
+            continue
+        d, t = ev["default"], ev["tuned"]
+        key_d = (d["cases_over_slip_limit"], d["yaw_rms_focus"])
+        key_t = (t["cases_over_slip_limit"], t["yaw_rms_focus"])
+        word = "worse than" if key_t > key_d else "as good as" if key_t == key_d else "better than"
+        line = (
+            f"{name}: tuned weights are {word} the example's defaults (yaw RMS "
+            f"{t['yaw_rms_focus']:.4f} vs {d['yaw_rms_focus']:.4f} rad/s, cases over the slip "
+            f"limit {t['cases_over_slip_limit']} vs {d['cases_over_slip_limit']})"
+        )
+        if key_t > key_d:
+            line += "; keep the defaults (run without this params.json)"
+        lines.append(line)
+    return lines

@@ -7,6 +7,7 @@ import json
 import pytest
 
 from ampc_jax.cli import main
+from ampc_jax.vehicle import StabilitySettings
 from ampc_jax.vehicle.examples import example
 
 BASE = ["sweep", "--cases", "2", "--rho", "1", "--quiet", "--no-figures"]
@@ -73,18 +74,26 @@ def test_tune_runs_the_examples_anderson_and_records_it(tmp_path, capsys):
 
 @pytest.mark.timeout(300)
 def test_simulate_names_the_examples_defaults_in_its_header(tmp_path, capsys):
+    """The header names the example's solver defaults, the precision and the
+    settings changed; a disabled objective's rho scale is not in it; metrics.json
+    records the precision and the change beside its default."""
     code = main(
         ["simulate", "stability_dlc", "--duration", "0.2", "--out", str(tmp_path / "s"),
-         "--quiet", "--no-timing", "--no-shadow"]
+         "--quiet", "--no-timing", "--no-shadow", "--float32", "--set", "q_vsc=8",
+         "--disable", "WSC"]
     )  # fmt: skip
     out = capsys.readouterr().out
     assert code == 0, out
     d = example("stability").solver_defaults
-    rs = ", ".join(f"{x:g}" for x in d["rho_scale"])
+    q_default = StabilitySettings().q_vsc
     assert out.splitlines()[0] == (
-        f"ampc simulate: stability_dlc, local_explicit, rho scale ({rs}), relaxation "
-        f"{d['relaxation']:g}, Anderson {d['anderson']} (the stability example's defaults "
-        f"where no flag or --params gave one)"
+        f"ampc simulate: stability_dlc, local_explicit, VSC (WSC disabled), rho scale "
+        f"{d['rho_scale'][0]:g}, relaxation {d['relaxation']:g}, Anderson {d['anderson']}, "
+        f"float32; settings q_vsc=8 (default {q_default:g}) (the stability example's solver "
+        f"defaults where no flag or --params gave one)"
     )
+    assert "; float32]" in out and f"q_vsc 8 (default {q_default:g})" in out  # the summary
     m = json.loads((tmp_path / "s" / "metrics.json").read_text())
     assert m["relaxation"] == d["relaxation"] and m["anderson"] == d["anderson"]
+    assert m["dtype"] == "float32" and m["objectives"] == ["VSC"]
+    assert m["settings_changed"] == {"q_vsc": {"value": 8.0, "default": q_default}}

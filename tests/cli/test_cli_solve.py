@@ -471,4 +471,7 @@ def test_tol_rel_is_checked_and_the_gap_is_printed(capsys, base):
     assert exit_code(["solve", "cruise_control", "--tol-rel", "-1"]) == 2
     assert "ampc: error: --tol-rel: expected a finite number >= 0" in capsys.readouterr().err
     assert main(["solve", "cruise_control", "--tol", "1e-8"]) == 0
-    assert "gap          " in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "gap          " in text
+    assert "of the optimum: the 2-norm over every agent's inputs and every step of the " in text
+    assert "horizon, in the inputs' own units)" in text

@@ -31,6 +31,8 @@ def test_tune_writes_params_figure_and_table(tmp_path, capsys):
     assert len(doc["history"]) == 4 and doc["evaluation"]
     assert (out / "loss.png").stat().st_size > 0
     assert "eq.opt_ro" in text and "grid best" in text and "tuned" in text
+    # the summary compares with what simulate and solve run without this file
+    assert "example defaults" in text and "than the example defaults (median " in text
 
 
 @pytest.mark.timeout(30)

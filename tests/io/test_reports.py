@@ -109,7 +109,10 @@ def test_write_run_writes_both_files(run, tmp_path):
 def test_summary_lines_of_the_run(run):
     m = run.metrics()
     lines = summary_lines(m)
-    assert lines[0] == f"{SCENARIO} [local_explicit; LST+YRT; N_p={m['horizon']}; warm start]"
+    assert m["dtype"] == "float64" and m["settings_changed"] == {}
+    assert lines[0] == (
+        f"{SCENARIO} [local_explicit; LST+YRT; N_p={m['horizon']}; warm start; float64]"
+    )
     assert lines[1].startswith(
         "  solver          eps_r 1, eps_s 1, relaxation 1.5, rho_scale 1, 0.5"
     )

@@ -81,7 +81,8 @@ def test_evaluation_table_rows():
     )
     (ev,) = res.evaluation.values()
     names = [r["name"] for r in ev["rows"]]
-    assert names == ["eq.opt_ro", "grid best", "tuned"] and len(ev["grid"]) == 13
+    assert names == ["eq.opt_ro", "grid best", "example defaults", "tuned"]
+    assert len(ev["grid"]) == 13
     for r in ev["rows"]:
         assert r["converged"] == 1.0 and r["median"] > 0 and r["u0_rel_error"] < 0.05
     assert "grid best" in evaluation_table(res.evaluation)
