@@ -21,6 +21,7 @@ Every step appends a record to the history (``record``: by default
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, NamedTuple
@@ -53,6 +54,9 @@ class FitSpec:
         after the last step (default True).
     desc : the progress bar's label; ``progress``: tqdm's ``disable`` negated
         (None: on a terminal only).
+    compiler_options : XLA options of the compiled step (None: XLA's defaults;
+        e.g. :func:`~ampc_jax.closed_loop.compile.loop_compiler_options` where the
+        compile outweighs the steps' run, ``bench/bench_compile.py``).
     """
 
     steps: int
@@ -63,6 +67,7 @@ class FitSpec:
     final: bool = True
     desc: str = "tune"
     progress: bool | None = None
+    compiler_options: Any = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "steps", check_count(self.steps, "steps", 0))
@@ -155,7 +160,9 @@ def fit(
         loss if has_aux else lambda *a: (loss(*a), None), has_aux=True
     )
 
-    @jax.jit
+    options = dict(spec.compiler_options) if spec.compiler_options else None
+
+    @functools.partial(jax.jit, compiler_options=options)
     def update(th: Any, state: Any, *batch: Any) -> tuple[Any, Any, Any, Any]:
         import optax
 

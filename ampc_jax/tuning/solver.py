@@ -311,7 +311,17 @@ def tune_solver(
         raise ValueError(f"family: {fam.name!r} is a {fam.kind} family; expected a step family")
     for name, v in (("steps", steps), ("iterations", iterations), ("cases", cases)):
         check_count(v, name)
-    spec = FitSpec(int(steps), lr, desc="tune", progress=progress)
+    # the unrolled step's compile is most of a tuning run's time, its run is not
+    # (bench/bench_compile.py, "tune solver"): a closed loop's compiler options
+    from ..closed_loop.compile import loop_compiler_options
+
+    spec = FitSpec(
+        int(steps),
+        lr,
+        desc="tune",
+        progress=progress,
+        compiler_options=loop_compiler_options() or None,
+    )
     opts: dict[str, Any] = {} if horizon is None else {"horizon": int(horizon)}
     if dtype is not None:
         opts["dtype"] = dtype

@@ -15,8 +15,10 @@ def _quadratic(th):
     return jnp.sum((th - 3.0) ** 2)
 
 
-def test_adam_steps_match_optax_and_the_best_point_is_kept():
-    spec = FitSpec(steps=5, lr=0.1, progress=False)
+@pytest.mark.parametrize("options", [None, {"xla_backend_optimization_level": 0}])
+def test_adam_steps_match_optax_and_the_best_point_is_kept(options):
+    """Also with a closed loop's compiler options (what tune_solver compiles with)."""
+    spec = FitSpec(steps=5, lr=0.1, progress=False, compiler_options=options)
     run = fit(_quadratic, jnp.zeros(2), spec)
     # the same steps by hand: the loss recorded is that of the point before each step
     opt = optax.adam(0.1)
