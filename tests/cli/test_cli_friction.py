@@ -240,12 +240,12 @@ def test_demo_writes_the_same_layout(capsys, tmp_path, monkeypatch):
     to 1 s here (the full demo takes about 15 s more)."""
     from ampc_jax import closed_loop
 
-    full = closed_loop.simulate
+    full = closed_loop.prepare  # the closed loops' lowering: their duration
 
     def short(spec, config=None, *, duration=None, **kw):
         return full(spec, config, duration=1.0 if duration is None else duration, **kw)
 
-    monkeypatch.setattr(closed_loop, "simulate", short)
+    monkeypatch.setattr(closed_loop, "prepare", short)
     out = tmp_path / "demo"
     assert main(["demo", "--quiet", "--out", str(out)]) == 0
     text = capsys.readouterr().out
@@ -258,3 +258,11 @@ def test_demo_writes_the_same_layout(capsys, tmp_path, monkeypatch):
     header = (out / "timeseries.csv").read_text().splitlines()[0].split(",")
     assert "r_time" in header
     assert "LST+YRT against LST:" in text and f"outputs in {out}" in text
+    assert "load-sensitive, meaningful on an idle machine" in text.splitlines()[0]
+    assert m["r_time_load"]["cores"] >= 1
+    # --no-timing: no replay (the closed loops are compiled already: no compile here)
+    assert main(["demo", "--quiet", "--no-timing", "--out", str(tmp_path / "fast")]) == 0
+    text = capsys.readouterr().out
+    assert "r_time replay skipped (--no-timing)" in text.splitlines()[0]
+    fast = json.loads((tmp_path / "fast" / "metrics.json").read_text())
+    assert "r_time_median" not in fast and fast["steps"] == 20
