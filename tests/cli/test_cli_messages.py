@@ -37,6 +37,7 @@ def test_sweep_help_lists_every_family(capsys):
     assert "stability_manoeuvres" in loops
     tune = _help(capsys, "tune")
     assert not [name for name in loops if name not in tune]
+    assert "weights with the defaults takes about 15 min" in tune
 
 
 def test_demo_help_states_the_timing_flag(capsys):
