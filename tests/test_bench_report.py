@@ -49,7 +49,7 @@ def _doc(tmp_path: Path, printed: list[str], results: object = None) -> Path:
                 "meta": {
                     "commit": "abc1234",
                     "date_utc": "2026-12-01T10:00:00Z",
-                    "command": "python bench/x.py --out /somewhere/x.json --n 3",
+                    "command": "python bench/SCRIPT.py --out /somewhere/x.json --n 3",
                     "cpu_count": 2,
                     "loadavg_start": [0.5, 0, 0],
                     "loadavg_end": [1.25, 0, 0],
@@ -82,7 +82,7 @@ def test_render_selects_tables_lines_and_records(tmp_path, monkeypatch):
     out = report.render("r tables=2", doc)
     assert "**caption two**\n\n| c |\n| --- |\n| 3 |" in out and "| a | b |" not in out
     assert "at commit abc1234" in out and "load 0.50 to 1.25" in out
-    assert "--out" not in out and "`python bench/x.py --n 3`" in out  # the file is the link
+    assert "--out" not in out and "`python bench/SCRIPT.py --n 3`" in out  # the file is the link
     assert "(../r.json)" in out
     assert "| a | b |" in report.render("r", doc) and "| c |" in report.render("r", doc)
     lines = report.render("r lines=4:5", doc)
