@@ -290,7 +290,7 @@ pub struct SmConfig {
 impl Default for SmConfig {
     /// The shipped `vehicle.toml`: a window of 8 frames (160 ms at 20 ms);
     /// valid from the third frame of a fresh sender; one error in 8 frames
-    /// tolerated (a bad CRC costs one frame, issue 29 item 13), two frames
+    /// tolerated (a bad CRC costs one frame, never two), two frames
     /// without a counter step (a frozen sender) are not; once invalid, a
     /// whole window of sound frames before the message is valid again.
     fn default() -> Self {
@@ -643,7 +643,7 @@ mod tests {
 
     #[test]
     fn one_bad_crc_in_eight_frames_keeps_the_message_valid() {
-        // Issue 29 item 13: the bad frame is one error; the next frame, two
+        // Rule: a bad CRC costs one frame. The bad frame is one error; the next frame, two
         // counter steps on, is OKSOMELOST, which the state machine counts OK.
         let id = 0x0C11;
         let mut r = Receiver::new(id, 8, 2, 2);

@@ -307,11 +307,12 @@ impl RxStore {
         let msg = RX_MESSAGES.get(m)?;
         let p = &self.cfg.plausibility;
         let slot = self.slots.get(m)?;
-        // The bound holds however old the reference is: a gap (the sender, the
-        // transport or this thread stalled past the state timeout) widens the
-        // allowance by rate x gap, never lifts it; reason: a loaded receiver
-        // once took a 12 -> 85 m/s jump after a 250 ms stall
-        // (test_i4_a_speed_jumping_12_85_every_frame_is_never_believed).
+        // Rule: the bound holds however old the reference is: a gap (the sender,
+        // the transport or this thread stalled past the state timeout) widens the
+        // allowance by rate x gap, never lifts it; reason: otherwise a receiver
+        // that stalls past the state timeout believes any jump after it, e.g.
+        // 12 -> 85 m/s (test_i4_a_speed_jumping_12_85_every_frame_is_never_believed;
+        // bench/bench_can_bridge_faults.py, plausibility).
         if let Some((t, c0, prev)) = slot.reference {
             let elapsed = now.saturating_sub(t);
             let steps = match (c0, counter) {
@@ -903,7 +904,8 @@ mod tests {
 
     #[test]
     fn one_bad_crc_in_eight_frames_keeps_the_state_valid() {
-        // Issue 29 item 13.
+        // One corrupted frame costs one frame, not the state (docs/bus-safety.md,
+        // "The state machine's thresholds"; bench/bench_can_bridge_faults.py).
         let mut rx = store();
         let mut valid = 0;
         for k in 0..200u64 {
@@ -926,7 +928,8 @@ mod tests {
 
     #[test]
     fn a_speed_jumping_faster_than_a_vehicle_can_is_implausible() {
-        // Issue 29 item 4: 12 <-> 85 m/s every 20 ms, sound E2E.
+        // A speed alternating 12 <-> 85 m/s every 20 ms with sound E2E: never
+        // believed (docs/bus-safety.md, "Physical plausibility").
         let mut rx = store();
         cycles(&mut rx, 0, 10);
         let mut believed_fast = 0;

@@ -657,7 +657,7 @@ mod tests {
 
     #[test]
     fn a_channel_that_opens_late_gets_a_ramp_from_zero() {
-        // Issue 29 item 1: the limiter does not advance while nothing goes out.
+        // Rule: the limiter does not advance while nothing goes out.
         let (frames, shared, _, ticks) = held_at_100(|n| {
             if n < 10 {
                 Outcome::NOT_OPEN
