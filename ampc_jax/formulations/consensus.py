@@ -170,11 +170,11 @@ class ConsensusADMM(ADMMSolver):
     topology : the MACS structure (every agent must lie in some group S_j).
     max_iter : outer iteration cap of the ``while_loop`` runner (default 500).
     inner_iterations : inner ADMM iterations per outer iteration on the local
-        QPs (default 5). On the three vehicle manoeuvres 1, 2, 3, 5 and 10 gave
-        the same r_time within noise up to 5 (1.10 to 1.15) and 1.13 to 1.23 at
-        10, while e_sub p95 fell from 7.8 / 2.8 / 3.8 Nm at 1 to 2.6 / 1.6 /
-        1.4 Nm at 5 and the outer iterations' maximum from 46 / 45 / 42 to 18 /
-        13 / 24 (``docs/formulations.md``, "Inner iterations").
+        QPs (default 5). Rule: the most inner iterations that cost no r_time;
+        reason: up to 5 the vehicle manoeuvres' r_time is unchanged within
+        noise while e_sub p95 and the outer iterations fall about threefold
+        (``bench/bench_formulations.py``, ``docs/formulations.md``, "Inner
+        iterations").
     anderson : Anderson memory (0 to 3) on the map (Z, gamma, s, y) -> next;
         0 (default) is the plain iteration.
     rho_method : ``"power"`` (default) or ``"given"`` (:data:`CONSENSUS_RHO_METHODS`).

@@ -3,10 +3,10 @@
 Rule: every chunk a sweep writes carries the hash of the spec that wrote it
 and the cases it holds (Parquet metadata key :data:`META_KEY`), and a sweep
 starts only on an output directory that holds nothing of another sweep
-(:func:`check_out`); reason: a resume used to skip any file with a chunk's
-name, so a rerun with another grid after ``sweep.json`` was deleted, or a
-valid chunk of another sweep copied in, was joined silently under the new
-spec (``tests/sweep/test_sweep_run.py``). The check reads only
+(:func:`check_out`); reason: a resume that skipped any file with a chunk's
+name would join, silently and under the new spec, a rerun with another grid
+after ``sweep.json`` was deleted, or a valid chunk of another sweep copied
+in (``tests/sweep/test_sweep_run.py``). The check reads only
 ``sweep.json`` and the Parquet files, so refusing costs no solve.
 
 Rule: a chunk's identity is its content, not its label: the record can be
