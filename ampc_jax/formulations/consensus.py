@@ -173,8 +173,8 @@ class ConsensusADMM(ADMMSolver):
         QPs (default 5). Rule: the most inner iterations that cost no r_time;
         reason: up to 5 the vehicle manoeuvres' r_time is unchanged within
         noise while e_sub p95 and the outer iterations fall about threefold
-        (``bench/bench_formulations.py``, ``docs/formulations.md``, "Inner
-        iterations").
+        (``docs/formulations.md``, "Inner iterations", which gives its
+        command).
     anderson : Anderson memory (0 to 3) on the map (Z, gamma, s, y) -> next;
         0 (default) is the plain iteration.
     rho_method : ``"power"`` (default) or ``"given"`` (:data:`CONSENSUS_RHO_METHODS`).
