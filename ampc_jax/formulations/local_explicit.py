@@ -263,18 +263,14 @@ class LocalExplicit(ADMMSolver):
         if self.kkt not in KKT_SOLVES:
             raise ValueError(f"kkt: expected one of {KKT_SOLVES}, got {self.kkt!r}")
         select_rho(self.rho_method, RHO_METHODS)
-        object.__setattr__(self, "rho_refresh", _int_at_least("rho_refresh", self.rho_refresh, 1))
+        object.__setattr__(self, "rho_refresh", check_count(self.rho_refresh, "rho_refresh", 1))
         select_dual_residual(self.dual_residual, DUAL_RESIDUALS)
-        object.__setattr__(
-            self, "finish_every", _int_at_least("finish_every", self.finish_every, 1)
-        )
-        object.__setattr__(
-            self, "finish_first", _int_at_least("finish_first", self.finish_first, 0)
-        )
+        object.__setattr__(self, "finish_every", check_count(self.finish_every, "finish_every", 1))
+        object.__setattr__(self, "finish_first", check_count(self.finish_first, "finish_first", 0))
         object.__setattr__(
             self,
             "finish_corrections",
-            _int_at_least("finish_corrections", self.finish_corrections, 0),
+            check_count(self.finish_corrections, "finish_corrections", 0),
         )
         select_finish(self.finish, self.finish_every, self.finish_corrections)
         select_kkt(self.topology, self.kkt)  # validates the choice for this topology
