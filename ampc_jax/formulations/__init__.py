@@ -25,6 +25,7 @@ from .registry import (
     formulation,
     formulation_info,
     formulation_names,
+    formulation_options,
     register_formulation,
     unregister_formulation,
 )
@@ -50,6 +51,7 @@ __all__ = [
     "formulation",
     "formulation_info",
     "formulation_names",
+    "formulation_options",
     "register_formulation",
     "unregister_formulation",
 ]
