@@ -45,6 +45,7 @@ _FLAGS = {
     "integrated_rho_scale": "--integrated-rho-scale",
     "warm_shift": "--warm-shift",
     "anderson": "--anderson",
+    "finish": "--finish",
     "compare": "--compare",
     "duration": "--duration",
     "mu": "--mu",
@@ -212,6 +213,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             integrated_rho_scale=args.integrated_rho_scale,
             warm_shift=args.warm_shift,
             anderson=args.anderson,
+            finish=args.finish,
             actuators=args.actuators,
         )
         given = tuple(
@@ -275,7 +277,8 @@ def _header(scenario: str, cfg: Any) -> str:
     start = ", learned start" if cfg.learned_start is not None else ""
     return (
         f"ampc simulate: {scenario}, {cfg.formulation}, rho scale ({rs}), relaxation "
-        f"{o['relaxation']:g}, Anderson {o['anderson']}{start} (the {cfg.example} example's "
+        f"{o['relaxation']:g}, Anderson {o['anderson']}, finish {o['finish']}{start} (the "
+        f"{cfg.example} example's "
         f"defaults where no flag or --params gave one)"
     )
 
@@ -451,6 +454,9 @@ def add_simulate_commands(sub: Any) -> None:
         anderson="Anderson acceleration memory for the controller and the integrated MPC; "
         "0 is plain ADMM, the paper (default: the example's value, 3)",
         max_iter="the controller's iteration cap (default: 200)",
+        finish="the exact finish of the controller's and the integrated MPC's solves: none "
+        "(the paper's iteration alone) or active_set (the active set's QP solved exactly "
+        "and KKT-checked) (default: the example's, none)",
     )
     p.add_argument(
         "--integrated-rho-scale",

@@ -37,7 +37,10 @@ class IntegratedShadow:
     """The shadow integrated MPC of one controller topology (static).
 
     ``max_iter`` (default 5000) caps it; ``warm_shift`` builds its warm start
-    as the controller's does.
+    as the controller's does. It ends its solves with IntegratedADMM's exact
+    finish (the default ``finish="active_set"``): the reference of e_sub is the
+    integrated problem's optimum itself, not an iterate within the shadow's
+    tolerance of it.
     """
 
     topology: Topology

@@ -37,7 +37,7 @@ def replay_timing(
     factorisation, the ADMM ``while_loop`` to the *controller's* tolerance
     ``config.tol_primal``, ``config.tol_dual`` and the result -- with ``block_until_ready``; the median of
     ``repeats`` calls per step. Building the model and ``make_data`` are not
-    timed (identical for both). Both use ``config.relaxation``; Local Explicit
+    timed (identical for both). Both use ``config.relaxation`` and ``config.finish``; Local Explicit
     scales eq.opt_ro's rho* by ``config.rho_scale`` (enabled objectives),
     IntegratedADMM by its own ``config.integrated_rho_scale``, each tuned by
     the same sweep (``docs/results.md``). Warm start: Local Explicit gets the warm state
@@ -64,7 +64,9 @@ def replay_timing(
     dtype = data.A.dtype
     le = ctrl.solver
     p_le = config.loop_params(dtype).controller.solver
-    ia = IntegratedADMM(T, max_iter=max(config.max_iter, 2000), anderson=config.anderson)
+    ia = IntegratedADMM(
+        T, max_iter=max(config.max_iter, 2000), anderson=config.anderson, finish=config.finish
+    )
     p_ia = ia.params(
         rho=config.integrated_rho_scale,
         relaxation=config.relaxation,

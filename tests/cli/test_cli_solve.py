@@ -472,3 +472,22 @@ def test_tol_rel_is_checked_and_the_gap_is_printed(capsys, base):
     assert "ampc: error: --tol-rel: expected a finite number >= 0" in capsys.readouterr().err
     assert main(["solve", "cruise_control", "--tol", "1e-8"]) == 0
     assert "gap          " in capsys.readouterr().out
+
+
+def test_finish_flag(capsys, base):
+    """--finish: its choices are the library's finishes; the default (active_set) and
+    none reach the same optimum, the finish in no more iterations; a formulation
+    without an exact finish refuses it by name."""
+    from ampc_jax.admm.finish import FINISHES
+    from ampc_jax.cli.args import FINISH_CHOICES
+
+    assert set(FINISH_CHOICES) == set(FINISHES)
+    plain = run_json(capsys, "--tol", "1e-8", "--finish", "none")
+    assert plain["status"] == base["status"] == "solved"
+    assert base["iterations"] <= plain["iterations"]
+    for agent, u0 in base["u0"].items():
+        np.testing.assert_allclose(plain["u0"][agent], u0, atol=1e-3)
+    args = ["solve", "cruise_control", "--formulation", "fully_distributed", "--finish", "none"]
+    assert exit_code(args) == 2
+    assert "--finish: --formulation fully_distributed has no exact finish" in capsys.readouterr().err
+    assert exit_code(["solve", "cruise_control", "--finish", "exact"]) == 2
