@@ -102,8 +102,9 @@ Run (``--kkt``: default every name in ``ampc_jax.admm.kkt.KKT_SOLVES`` but
     python bench/bench_peers.py --full            # adds 100,000 cases
     taskset -c 1 python bench/bench_peers.py --only latency
     python bench/bench_peers.py --horizons 10 --max-batch 1000 --out /tmp/peers.json
-    python bench/bench_peers.py --finish active_set --rho-method carried   # the exact
-                                                  # finish and the carried rho (LE's options)
+    python bench/bench_peers.py --finish none --rho-method power   # the paper's
+                                                  # iteration (default: the library's exact
+                                                  # finish and carried rho)
     python bench/bench_peers.py --smoke           # N_p 10, float64, the "auto" K, one
                                                   # 6-step latency drive, batches 1 and
                                                   # 10 of 3-step drives (about 50 s)
@@ -1780,13 +1781,16 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument(
         "--finish",
-        default="none",
-        help="Local Explicit's finish: none (default, the paper's iteration) or active_set",
+        default="active_set",
+        choices=("active_set", "none"),
+        help="Local Explicit's finish: active_set (default, the library's: the exact "
+        "finish) or none (the paper's iteration alone)",
     )
     ap.add_argument(
         "--rho-method",
-        default="power",
-        help="Local Explicit's rho rule: power (default), carried, eigh or given",
+        default="carried",
+        choices=("carried", "power", "eigh", "given"),
+        help="Local Explicit's rho rule: carried (default, the library's), power, eigh or given",
     )
     ap.add_argument("--max-batch", type=int, default=None, help="largest batch size")
     ap.add_argument("--full", action="store_true", help="add 100,000 cases")
