@@ -504,9 +504,12 @@ def section_throughput(args: Any, devs: list) -> dict[str, Any]:
             solver, pd_, pp, _ = le_setup(cases, tol, n)
             pd_, pp = jax.device_put((pd_, pp))
             dq = jax.device_put(_take(cases.data, 0, n), devs[0])
-            f_le = lambda: jax.block_until_ready(
-                sweep_solve(solver, pd_, pp, devices=devs, **SWEEP_OPTIONS)
-            )  # noqa: B023, E731
+
+            def f_le(solver=solver, pd_=pd_, pp=pp):  # this size's program
+                return jax.block_until_ready(
+                    sweep_solve(solver, pd_, pp, devices=devs, **SWEEP_OPTIONS)
+                )
+
             f_q = lambda: jax.block_until_ready(qp_fn(dq))  # noqa: B023, E731
             # warm-up of each, then the timed calls interleaved contender by contender
             res, _ = f_le()
@@ -587,11 +590,14 @@ def section_waste(args: Any, devs: list) -> dict[str, Any]:
         pd_, pp = jax.device_put((pair_data(cases.data, P), pair_params(grid, n)))
         base = None
         for comp, seg in [(False, 16)] + [(True, s) for s in segs]:
-            f = lambda: jax.block_until_ready(  # noqa: E731
-                sweep_solve(
-                    solver, pd_, pp, devices=devs, compaction=comp, segment=seg, **SWEEP_OPTIONS
-                )  # noqa: B023
-            )
+
+            def f(comp=comp, seg=seg, solver=solver, pd_=pd_, pp=pp):  # this row
+                return jax.block_until_ready(
+                    sweep_solve(
+                        solver, pd_, pp, devices=devs, compaction=comp, segment=seg, **SWEEP_OPTIONS
+                    )
+                )
+
             t, (res, work) = _median_time(f, args.repeats)
             waste = float(np.sum(np.asarray(work.computed))) / max(
                 float(np.sum(np.asarray(work.needed))), 1.0

@@ -23,9 +23,7 @@ def _problem():
 def test_carried_rho_same_optimum_and_no_new_estimate():
     T, d, d2 = _problem()
     power = LocalExplicit(T, max_iter=5000, rho_method="power", finish="none")
-    carried = LocalExplicit(
-        T, max_iter=5000, rho_method="carried", rho_refresh=5000, finish="none"
-    )
+    carried = LocalExplicit(T, max_iter=5000, rho_method="carried", rho_refresh=5000, finish="none")
     q = power.params(rho=(1.0, 0.3), tol_primal=1e-12, tol_dual=1e-12)
     r0p = jax.jit(power.solve)(d, q)
     r0c = jax.jit(carried.solve)(d, q)

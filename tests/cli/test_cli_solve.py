@@ -489,5 +489,7 @@ def test_finish_flag(capsys, base):
         np.testing.assert_allclose(plain["u0"][agent], u0, atol=1e-3)
     args = ["solve", "cruise_control", "--formulation", "fully_distributed", "--finish", "none"]
     assert exit_code(args) == 2
-    assert "--finish: --formulation fully_distributed has no exact finish" in capsys.readouterr().err
+    assert (
+        "--finish: --formulation fully_distributed has no exact finish" in capsys.readouterr().err
+    )
     assert exit_code(["solve", "cruise_control", "--finish", "exact"]) == 2
