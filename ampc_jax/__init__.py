@@ -14,25 +14,26 @@ the user set it; ``AMPC_KEEP_XLA_FLAGS=1`` leaves ``XLA_FLAGS`` untouched.
 The flags (:data:`XLA_WORKAROUND_FLAGS`, :data:`XLA_PERFORMANCE_FLAGS`):
 
 * ``--xla_cpu_multi_thread_eigen=false`` and
-  ``--xla_cpu_enable_concurrency_optimized_scheduler=false``, always: an early
-  mitigation of a deadlock of batched XLA:CPU programs on small (2-core)
-  machines. The deadlock's cause was later found in XLA:CPU's batched LAPACK
-  kernels, which the solvers do not call under ``vmap`` (docs/known-issues.md);
-  ``rho_method="eigh"`` and rank-deficient constraint rows still do.
+  ``--xla_cpu_enable_concurrency_optimized_scheduler=false``, always. Rule:
+  set both; reason: batched XLA:CPU programs can deadlock on small (2-core)
+  machines. The deadlock's cause is XLA:CPU's batched LAPACK kernels, which
+  the solvers do not call under ``vmap``; ``rho_method="eigh"`` and
+  rank-deficient constraint rows still do (docs/known-issues.md).
 * with jaxlib 0.10.x only (the flag is experimental; an unknown flag aborts
-  XLA), ``--xla_cpu_experimental_ynn_fusion_type=``: no YNNPACK fusions. On
-  this package's small matrices YNNPACK's per-call overhead dominated:
-  without it a batched Local Explicit iteration took 1.1 instead of 3.8 us per
-  case and batched throughput rose 1.6x to 1.8x (docs/known-issues.md).
+  XLA), ``--xla_cpu_experimental_ynn_fusion_type=``: no YNNPACK fusions.
+  Reason: on this package's small matrices YNNPACK's per-call overhead
+  dominates a batched Local Explicit iteration (the batched throughput of
+  ``bench/bench_local_explicit.py --only throughput``; docs/known-issues.md).
 * with jaxlib 0.10.x only,
   ``--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=1000000``:
   XLA:CPU compiles a ``while_loop`` whose accessed bytes are under this limit
   (1 kB by default) into one kernel instead of running its body kernel by
-  kernel. That covers the solvers' iteration loops up to N_p = 20 (and
-  batches of 32 at N_p = 10 and 20): the ADMM iteration of the cruise example
-  went from 0.30 to 0.16 us, a full step at N_p = 10 from 131 to 114 us, the
-  closed-loop DLC from 467x to 908x real time (docs/history.md). Skipped when
-  ``XLA_FLAGS`` already sets ``--xla_backend_extra_options``.
+  kernel. Rule: a limit that covers the solvers' iteration loops up to
+  N_p = 20 (and batches of 32 at N_p = 10 and 20); reason: a step at these
+  sizes is mostly per-kernel cost, so one kernel per loop is what makes a
+  control step and a closed loop fast (``bench/bench_call_overhead.py``,
+  docs/benchmarks.md "The cost of a call"). Skipped when ``XLA_FLAGS``
+  already sets ``--xla_backend_extra_options``.
 
 ``tests/test_package.py`` pins this list: the import changes ``XLA_FLAGS``
 alone, by exactly the flags named here.

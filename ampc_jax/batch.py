@@ -9,8 +9,11 @@ leading axis is split across them with ``jax.shard_map`` (each device maps over
 its own share). On CPU, ``XLA_FLAGS=--xla_force_host_platform_device_count=N``
 (set before JAX starts) gives N devices, one per core.
 
-Chunks of 16 to 64 ran 2.5x faster than one ``vmap`` of 1,024 drives on one
-core (the cruise-control benchmark, ``bench/bench_local_explicit.py``).
+Rule: chunks (16 to 64 cases) rather than one ``vmap`` of the whole batch;
+reason: each chunk stops at its own slowest case and stays in cache, several
+times the throughput of one ``vmap`` of 1,024 drives on one core
+(``bench/bench_local_explicit.py --only throughput``, docs/benchmarks.md
+"Batched throughput").
 
 Deadlock (docs/known-issues.md): XLA:CPU's batched LAPACK kernels
 (Cholesky, triangular solve, LU, eigh) split their batch into tasks on the

@@ -18,7 +18,7 @@ Figures over the first N ticks (default 1,200 = one minute at 50 ms):
 mean period, drift = (wake[N-1] - wake[0]) - (N-1) * period, lateness
 (wake - deadline) p50/p99/max, overruns.
 
-The period on the plant's (receiving) clock, issue 29 item 14: the peer takes
+The period on the plant's (receiving) clock (docs/bus-safety.md): the peer takes
 every frame in python-can's receive thread (``can.Notifier``), stamped with
 the host clock as it is parsed, and the bridge logs each frame's write time
 (candump log, the same clock). Per pair of consecutive frames: the period

@@ -1,5 +1,6 @@
-"""Fault-injection figures of can_bridge: issue 21's findings re-measured, and
-issue 29's (the bus under attack and faults).
+"""Fault-injection figures of can_bridge: the bus under attack and faults (the
+threats of docs/bus-safety.md), and the transport's own faults (stalls, frozen
+sensors, restarts, floods).
 
 Every case runs a fresh bridge with an independent python-can peer (the
 ``slcan`` interface on the pty, or the ``socketcand`` interface as a second
@@ -15,20 +16,23 @@ that takes every torque frame in python-can's receive thread. Per fault:
 
 Targets: 0 stale, 0 intruder samples believed. The cases:
 
-* ``socketcand stall`` (issue 29 item 2): the server stops reading for
+* ``socketcand stall``: the server stops reading for
   ``--stall`` s, ``--trials`` times right after answering the echo behind a
   frame (between two ticks) and as many times at a random phase;
-* ``late open`` / ``reopen`` (item 1): the command held fresh at 1500 Nm, the
+* ``late open`` / ``reopen``: the command held fresh at 1500 Nm, the
   peer opens its channel 1 s late, or closes (``C``) and reopens it: the
   first frame's rear torque and what ``safety_state`` said meanwhile;
-* intruders (item 3): a real sender at 12 m/s and frames at 20 m/s on the
+* intruders: a real sender at 12 m/s and frames at 20 m/s on the
   same identifier with sound CRCs: one a counter +1 or +2 ahead, three in
   sequence after a jump, an interleaved stream with its own counter, a
   replayed stream with a constant counter offset;
-* plausibility (item 4): the speed alternating 12 <-> 85 m/s each frame;
+* plausibility: the speed alternating 12 <-> 85 m/s each frame;
   front wheels at 40 m/s against 12;
-* bad CRC 1 in 8 (item 13);
-* issue 21's: pty, serial adapter and socketcand stalls (frames found within
+* bursts: one sender's VehicleMotion frames back to back, the counter +2 and
+  the speed +0.8 m/s each (12 -> 85 m/s), and a counter +1 variant
+  (``ampc_jax.testing.can_rx_burst``; the receive side's pace rule);
+* bad CRC 1 in 8;
+* the transport's: pty, serial adapter and socketcand stalls (frames found within
   20 ms of resuming, frames dropped for age), frozen / stepping / doubled /
   mostly-bad-CRC sensors, socketcand restart, a ``V`` flood, watchdog times;
 * the transmit gaps (``--only tx``; docs/bus-safety.md, "Out"): a raw SLCAN
@@ -76,6 +80,7 @@ from ampc_jax.testing.can_fault_peers import (
     read_all,
 )
 from ampc_jax.testing.can_peers import MOTION, WHEELS, CmdChecker, send_sensors, state_message
+from ampc_jax.testing.can_rx_burst import REPORT, Burst
 
 CYCLE = 0.02  # the sensors' cycle (the DBC's GenMsgCycleTime)
 
@@ -141,7 +146,7 @@ def _stale(seen: list, log: str, period_s: float) -> dict:
     return {"stale": len(old), "oldest_s": round(max(ages, default=0.0), 4), "seen": len(ages)}
 
 
-# ---------------------------------------------------------------- issue 29
+# ---------------------------------------------------------------- the bus under attack
 
 
 def socketcand_stall(
@@ -369,6 +374,17 @@ def plausibility() -> dict:
     return {
         "speed 12 <-> 85": _sensor_case(jumping),
         "wheels 40 vs 12 m/s": _sensor_case(lambda k: [(0.0, REAL, k)], extra=fast_wheels),
+    }
+
+
+def bursts() -> dict:
+    """One sender's VehicleMotion frames back to back, each claiming a cycle
+    per counter step and within the rate bound for that claim: the report's
+    12 -> 85 m/s burst (counter +2, +0.8 m/s) and a counter +1 variant
+    (+0.35 m/s). Target: 0 samples over 50 m/s believed."""
+    return {
+        "burst +2, +0.8 m/s x 90": _sensor_case(Burst(**REPORT).motion()),
+        "burst +1, +0.35 m/s x 90": _sensor_case(Burst(n=90, step=1, delta=0.35).motion()),
     }
 
 
@@ -662,7 +678,7 @@ def print_tx_gaps(r: dict) -> None:
     )
 
 
-# ---------------------------------------------------------------- issue 21
+# ---------------------------------------------------------------- the transport's faults
 
 
 def stall_pty(stall: float) -> dict:
@@ -894,9 +910,10 @@ def main() -> None:
         "reopen": reopen(),
         "intruders": intruders(),
         "plausibility": plausibility(),
+        "bursts": bursts(),
         "bad_crc_1_in_8": bad_crc_1_in_8(),
     }
-    print("issue 29, per fault (target: 0 stale, 0 intruder samples believed):")
+    print("the bus under attack, per fault (target: 0 stale, 0 intruder samples believed):")
     head = f"{'fault':<30} {'framed':>6} {'stale':>5} {'valid %':>7} {'intruder':>8} {'>50 m/s':>7}"
     print(head)
     print("-" * len(head))
@@ -913,7 +930,7 @@ def main() -> None:
             f"(first frame RL {r['first_frame_RL_nm']:g} Nm, safety_state while closed "
             f"{r['safety_state_while_closed']})"
         )
-    for group in ("intruders", "plausibility"):
+    for group in ("intruders", "plausibility", "bursts"):
         for name, r in res[group].items():
             print(
                 f"{name:<30} {r['framed']:>6} {r['stale']:>5} {r['valid_pct']:>7.1f} "
@@ -938,7 +955,7 @@ def main() -> None:
         }
     )
     print()
-    print("issue 21's findings:")
+    print("the transport's faults:")
     for k in (
         "stall_pty",
         "stall_serial",

@@ -34,9 +34,8 @@ Two sub-commands:
     (vmapped). The script prints the number of compiled programs
     (``_cache_size()`` of each jitted replay): one per solver and run length
     whatever the number of points. The whole sweep takes under a minute on one
-    core, most of it compiling; the chunk size hardly matters (the full cruise
-    sweep took 26, 25 and 26 s with chunks of 1, 8 and 32, and chose the same
-    settings).
+    core, most of it compiling; the chunk size hardly matters (chunks of 1, 8
+    and 32 take about the same time and choose the same settings).
 
 ``table DIR [DIR ...]``
     Prints the markdown table of docs/results.md from the ``metrics.json`` of

@@ -28,7 +28,7 @@ temporary memory (XLA's ``memory_analysis``), and its accuracy: the largest
 error of the gradient against central differences of its own forward
 function (step ``--fd-step`` on every entry of theta), relative to the largest
 difference. The implicit gradient's rho and alpha entries are zero: the solution
-does not depend on them (:mod:`ampc_jax.admm.implicit`). Target (issue 30):
+does not depend on them (:mod:`ampc_jax.admm.implicit`). Target:
 value_and_grad <= 2x the forward pass for woodbury_factored and riccati at
 K = 10, 1,000 cases, judged for the unrolled gradient on the fastest unrolled
 gradient against the fastest unrolled forward pass, and for the implicit one

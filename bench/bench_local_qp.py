@@ -69,8 +69,9 @@ its inputs on the device, ``block_until_ready``, float64. The contenders
 take turns case by case (the first one rotating), each turn one warm-up call
 and the same number of timed calls in a row (``--repeats``, batches
 ``--batch-repeats``), medians: every contender is timed with its own data in
-cache (interleaving call by call made the inner ADMM's steps up to 3x slower
-right after a qpax call; ``bench_qp_peers.py`` times the same way). A call
+cache (rule: turns case by case, not call by call; reason: right after a
+qpax call the inner ADMM's step is slowed by a cold cache, several times
+over; ``bench_qp_peers.py`` times the same way). A call
 whose warm-up took over 2 s is timed by that call alone. Run pinned to one
 core::
 

@@ -11,7 +11,8 @@ along each drive), plus two general rows per prediction step::
 (``Topology.build(..., general_rows=[G])``, ``make_data(..., G=G, g=g)``).
 The drives are used as they are: they leave a general row active at the
 reference solution in about 70 % of the steps (printed by every run; the
-issue asks for 56 % to 76 %), so no operating point or v_ref is scaled.
+protocol asks for 56 % to 76 %, :data:`ACTIVE_RANGE`), so no operating point
+or v_ref is scaled.
 
 Truth: Clarabel at 1e-13 on the unscaled condensed QP
 (:func:`~ampc_jax.problem.condensed_qp`). Accuracy is each contender's
@@ -47,8 +48,9 @@ The peers solve the condensed QP; condensing (the re-linearised model ->
 H, f, bounds, rows) is part of their cost, timed separately and together:
 per step the jitted ``data_of`` + ``condensed_qp`` (one call, outputs to
 numpy), batched the same program jitted and mapped in chunks of
-``COND_BATCH`` (``jax.lax.map(..., batch_size=32)``: 2x faster than one
-``vmap`` of the whole chunk), one XLA device per worker process. Local
+``COND_BATCH`` (``jax.lax.map(..., batch_size=32)``; rule: chunks of 32;
+reason: the condensing's cost per case is lowest there, below one ``vmap``
+of the whole chunk), one XLA device per worker process. Local
 Explicit's step contains its own re-linearisation and setup.
 
 1. ``latency`` -- one time-varying full step on one core, N_p = 10 and 20:
@@ -177,7 +179,7 @@ G_ROWS = np.stack([G_ROW, -G_ROW])  # G (2, n_u): G u <= g
 G_RHS = np.array([G_UPPER, -G_LOWER])  # g (2,)
 N_U = G_ROW.size
 ACTIVE_TOL = 1e-3  # Nm: a general row within this of its bound counts as active
-ACTIVE_RANGE = (0.56, 0.76)  # the issue's share of steps with an active general row
+ACTIVE_RANGE = (0.56, 0.76)  # the protocol's share of steps with an active general row
 
 # -- accuracy and settings -------------------------------------------------------------------
 REF_EPS = 1e-13
@@ -332,7 +334,7 @@ def activity_line(label: str, ref: dict) -> str:
     return (
         f"{label}: a general row is active at the reference solution in {100 * ref['active_first']:.0f} % "
         f"of the steps at the first prediction step, {100 * a:.0f} % at any prediction step "
-        f"({where} the issue's {100 * lo:.0f} % to {100 * hi:.0f} %; drives unscaled); "
+        f"({where} the protocol's {100 * lo:.0f} % to {100 * hi:.0f} %; drives unscaled); "
         f"Clarabel {ref['clarabel_s_per_qp'] * 1e3:.1f} ms a QP"
         + (f", {ref['failed']} reference solves failed (left out)" if ref["failed"] else "")
     )

@@ -17,7 +17,7 @@ joined by SLCAN on a fresh pty. Reported, from both ends:
   p99, the p99 and max of |period - 50 ms|), frames that failed its checks,
   ticks where it fell behind.
 
-Targets (issue "Deploy"): compute p99 under 5 ms, zero misses, the period
+Targets (docs/runtime.md, "Timing"): compute p99 under 5 ms, zero misses, the period
 within 1 ms of 50 ms at p99 on the plant's clock. The test suite asserts none
 of these (a loaded machine misses deadlines that an idle one does not): they
 are measured here.

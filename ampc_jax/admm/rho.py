@@ -187,12 +187,11 @@ def carried_or_estimate(carried: Any, args: Any, estimate: Callable[[Any], Any])
 
 RHO_STEPS = 4
 """Default Lanczos steps of eq.opt_ro's estimate (each applies H_j and H_j^-1 once
-per objective). Rule: 4; reason: as close to the exact rho_j* as 8 steps of the
-former power iteration (worst 6.9 % against 8.7 % on tests/admm/test_rho.py's
-problems; 4.2 % and 3.6 % on bench/bench_peers.py's cruise drives at N_p = 10
-and 20) at half the products: eq.opt_ro was 62 % to 76 % of a batched setup,
-and the Riccati setup fell from 29.7 to 20.5 us a case-step (issue 30's
-breakdown, docs/bench_peers.md)."""
+per objective). Rule: 4; reason: within 10 % of the exact rho_j* (rho sets only the
+convergence rate; tests/admm/test_rho.py's ``test_power_rho_close_to_exact``) at
+half the operator products of a power iteration of that accuracy, and eq.opt_ro
+is most of a batched setup (bench/bench_peers.py, docs/bench_peers.md "Where the
+cost goes")."""
 
 RHO_RULES: dict[str, Any] = {r.name: r for r in (PowerRho(), ExactRho(), GivenRho(), CarriedRho())}
 """``rho_method`` name -> strategy."""
@@ -365,15 +364,16 @@ def power_rho(H: Any, Hinv: Any, LamB: Any, mask: Any, iterations: int) -> Any:
     is the largest Ritz value of ``iterations`` Lanczos steps
     (:func:`lanczos_extremes`), which lies inside the spectrum, so mu_max is
     under- and mu_min over-estimated. rho only sets the convergence rate (the
-    solution does not depend on it): 4 steps (:data:`RHO_STEPS`) gave rho
+    solution does not depend on it): 4 steps (:data:`RHO_STEPS`) keep rho
     within 10 % of the exact eigendecomposition on the generated problems
-    (worst 6.9 %, ``test_power_rho_close_to_exact``), as 8 steps of power
-    iteration did (8.7 %), with half the operator products.
+    (``test_power_rho_close_to_exact``) with half the operator products of a
+    power iteration of that accuracy.
 
     H, Hinv : (J, n, n); LamB : (J, U, U) the per-step block of Lambda;
-    mask : (J, n) 1 on real entries. The two operators are formed (for one
-    problem at the stability example's n = 9 that was 4 us faster than
-    applying H and H^-1 in every iteration).
+    mask : (J, n) 1 on real entries. Rule: the two operators are formed once;
+    reason: at the closed loop's sizes (the stability example's n = 9) forming
+    them costs less than applying H and H^-1 in every Lanczos step
+    (``bench/bench_local_explicit.py --only latency``).
     """
     # the two operators, formed once (n^2 U work: block-diagonal factors); with H,
     # H^-1 and Lambda symmetric, (I (x) B) applied to the rows of M is M (I (x) B)
@@ -397,9 +397,9 @@ def power_rho_woodbury(hessian: Any, LamB: Any, mask: Any, iterations: int) -> A
         H^-1 Lambda x = (I (x) BH^-1) Lambda x - W'(P (W Lambda x))
 
     which is O(n r) per product against the O(n^2 r) of forming the two
-    operators: on the cruise example at N_p = 10 (n = 40) the setup took 26
-    against 42 us per case batched over 32 cases, and 56 against 62 us for
-    one problem (``bench/bench_local_explicit.py``).
+    operators. Rule: the Woodbury form when H is; reason: from the cruise
+    example at N_p = 10 (n = 40) on, it is the cheaper setup, batched and for
+    one problem (``bench/bench_local_explicit.py``, docs/benchmarks.md).
     """
     Laminv = spd_inverse(LamB)
 

@@ -14,13 +14,13 @@ Rule: a command that fails (a non-zero exit or an exception) removes what it
 created and left empty: the empty files under the directories it created,
 and those directories once empty; in an ``--out`` that existed before, only
 the empty files at its top level that it wrote (new, or changed since it
-claimed the directory), the directory itself kept. Reason: failed commands left empty
-directories behind, and ``ampc run`` on a device that would not open a
-0-byte ``bridge.log``.
+claimed the directory), the directory itself kept. Reason: an empty directory
+or a 0-byte ``bridge.log`` (``ampc run`` on a device that would not open)
+reads as a result where there is none.
 
 ``ampc`` calls :func:`begin` and :func:`finish` around each command
 (:func:`~ampc_jax.cli.main`); the commands call :func:`claim_dir` or
-:func:`claim_file` where they used to create their ``--out``.
+:func:`claim_file` to create their ``--out``.
 """
 
 from __future__ import annotations

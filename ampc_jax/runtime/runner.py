@@ -261,7 +261,7 @@ def run_controller(
             )
         step_fn, cold, dtype = prepare()
         # Rule: the step gets NumPy arrays of its own dtype (a jnp conversion would
-        # compile a small program at the first tick: 50 ms measured in float32), and
+        # compile a small program at the first tick, about a whole 50 ms tick), and
         # it is called once before actuation and again on the first valid state,
         # so the first tick runs warm.
         np_dtype = np.dtype(dtype)

@@ -5,6 +5,7 @@
 use crate::error::{Error, Result};
 use crate::frame::CanFrame;
 use crate::scheduler::monotonic_ns;
+use crate::sync::lock;
 use std::fmt::Write as _;
 use std::io::Write as _;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -66,7 +67,7 @@ pub struct LogCounters {
 
 impl LogCounters {
     fn note(&self, msg: String) {
-        *self.last_error.lock().unwrap_or_else(|e| e.into_inner()) = Some(msg);
+        *lock(&self.last_error) = Some(msg);
     }
 }
 
@@ -134,11 +135,7 @@ impl LogSender {
     /// instead (transmitted frames are bounded by the tick rate).
     pub fn log(&self, wall_ns: u64, frame: &CanFrame, dir: Dir) {
         if dir == Dir::Rx {
-            let ok = self
-                .rx_limit
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .allow(frame.id(), monotonic_ns());
+            let ok = lock(&self.rx_limit).allow(frame.id(), monotonic_ns());
             if !ok {
                 self.counters.suppressed.fetch_add(1, Ordering::Relaxed);
                 return;

@@ -7,6 +7,16 @@
 //! feature adds the pyo3 module `can_bridge._can_bridge`.
 
 #![deny(missing_docs)]
+// Tests may unwrap: a failed unwrap there is a failed test (`Cargo.toml`'s lints).
+#![cfg_attr(
+    test,
+    allow(
+        clippy::unwrap_used,
+        clippy::expect_used,
+        clippy::panic,
+        clippy::disallowed_methods
+    )
+)]
 
 pub mod bridge;
 pub mod candump;
@@ -21,6 +31,9 @@ pub mod safety;
 pub mod scheduler;
 pub mod slcan;
 pub mod socketcand;
+mod sync;
+#[cfg(test)]
+mod test_support;
 pub mod transport;
 
 #[cfg(feature = "python")]

@@ -479,6 +479,7 @@ impl Safety {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_support::cases;
     use proptest::prelude::*;
 
     const MS: u64 = 1_000_000;
@@ -685,15 +686,8 @@ mod tests {
             .prop_map(|(lo, hi, r, l)| wheel(-(lo as f64) * 1.01, hi as f64 * 0.99, r, l))
     }
 
-    fn cases() -> u32 {
-        std::env::var("CAN_BRIDGE_PROPTEST_CASES")
-            .ok()
-            .and_then(|s| s.parse().ok())
-            .unwrap_or(500)
-    }
-
     proptest! {
-        #![proptest_config(ProptestConfig::with_cases(cases()))]
+        #![proptest_config(ProptestConfig::with_cases(cases(500)))]
 
         /// Any limits, any commands, any arrival times: every output is on
         /// the 2 Nm grid and within its wheel's range; every change between
@@ -740,3 +734,6 @@ mod tests {
         }
     }
 }
+
+#[cfg(test)]
+mod limits_tests;

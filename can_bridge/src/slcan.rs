@@ -248,6 +248,7 @@ impl Decoder {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_support::{any_frame, cases, feed_in_pieces};
     use proptest::prelude::*;
 
     fn events(d: &mut Decoder, bytes: &[u8]) -> Vec<Event> {
@@ -335,33 +336,8 @@ mod tests {
         );
     }
 
-    fn arb_frame() -> impl Strategy<Value = CanFrame> {
-        (
-            any::<bool>(),
-            any::<bool>(),
-            any::<u32>(),
-            proptest::collection::vec(any::<u8>(), 0..=8),
-        )
-            .prop_map(|(ext, rtr, id, data)| {
-                let id = if ext { id & 0x1FFF_FFFF } else { id & 0x7FF };
-                if rtr {
-                    CanFrame::remote(id, ext, data.len() as u8).unwrap()
-                } else {
-                    CanFrame::new(id, ext, &data).unwrap()
-                }
-            })
-    }
-
-    /// Cases per property; override with CAN_BRIDGE_PROPTEST_CASES.
-    fn cases() -> u32 {
-        std::env::var("CAN_BRIDGE_PROPTEST_CASES")
-            .ok()
-            .and_then(|s| s.parse().ok())
-            .unwrap_or(4000)
-    }
-
     proptest! {
-        #![proptest_config(ProptestConfig::with_cases(cases()))]
+        #![proptest_config(ProptestConfig::with_cases(cases(4000)))]
 
         /// Arbitrary bytes: never a panic, bounded memory.
         #[test]
@@ -374,7 +350,7 @@ mod tests {
         /// Garbage, then frames split at arbitrary points: the frames come out.
         #[test]
         fn fuzz_split_reassembly(
-            frames in proptest::collection::vec(arb_frame(), 1..8),
+            frames in proptest::collection::vec(any_frame(), 1..8),
             garbage in proptest::collection::vec(any::<u8>(), 0..64),
             cuts in proptest::collection::vec(any::<usize>(), 0..6),
         ) {
@@ -384,14 +360,7 @@ mod tests {
                 stream.extend_from_slice(encode(f).as_bytes());
             }
             let mut d = Decoder::default();
-            let mut got = vec![];
-            let mut cuts: Vec<usize> = cuts.iter().map(|c| c % (stream.len() + 1)).collect();
-            cuts.sort_unstable();
-            let mut prev = 0;
-            for c in cuts.into_iter().chain(std::iter::once(stream.len())) {
-                d.feed(&stream[prev..c], |e| got.push(e));
-                prev = c;
-            }
+            let got = feed_in_pieces(&stream, &cuts, |b, out| d.feed(b, |e| out.push(e)));
             let decoded: Vec<CanFrame> = got.iter().filter_map(|e| match e {
                 Event::Frame(f) => Some(*f),
                 _ => None,

@@ -2,6 +2,14 @@
 //! must return, and no transmit/receive thread may outlive the last `stop`.
 //! (Own test binary, so the thread count of the process is ours alone.)
 
+// A test may unwrap: a failed unwrap is a failed test (`Cargo.toml`'s lints).
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    clippy::disallowed_methods
+)]
+
 use can_bridge::{Bridge, BridgeConfig};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;

@@ -1,6 +1,14 @@
 //! The whole bridge (real threads, real clock) over a pseudo-terminal, with
 //! a raw-mode peer on the slave side: no Python involved.
 
+// A test may unwrap: a failed unwrap is a failed test (`Cargo.toml`'s lints).
+#![allow(
+    clippy::unwrap_used,
+    clippy::expect_used,
+    clippy::panic,
+    clippy::disallowed_methods
+)]
+
 use can_bridge::codec::{Mode, WHEEL_TORQUE_CMD};
 use can_bridge::slcan::{Decoder, Event};
 use can_bridge::{e2e, Bridge, BridgeConfig, CanFrame};

@@ -8,6 +8,7 @@ import pytest
 
 from ampc_jax.formulations import LocalExplicit
 from ampc_jax.generate import random_problem
+from ampc_jax.results import Status
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -36,7 +37,7 @@ def test_carried_rho_same_optimum_and_no_new_estimate():
     # warm: the carried rho* (not the new step's estimate), the same optimum
     np.testing.assert_allclose(np.asarray(r1c.rho), star0 * np.array([1.0, 0.3]), rtol=1e-12)
     assert not np.allclose(np.asarray(r1c.rho), np.asarray(r1p.rho), rtol=1e-9)
-    assert int(r1c.status) == 0 and int(r1p.status) == 0
+    assert int(r1c.status) == Status.SOLVED and int(r1p.status) == Status.SOLVED
     np.testing.assert_allclose(np.asarray(r1c.u), np.asarray(r1p.u), atol=1e-3)
     # with the exact finish both are the optimum itself
     fin_p = LocalExplicit(T, max_iter=5000, finish="active_set", rho_method="power")

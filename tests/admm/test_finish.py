@@ -10,6 +10,7 @@ from ampc_jax.admm.finish import finish_solve, select_finish, solve_eqp, verify
 from ampc_jax.formulations import LocalExplicit
 from ampc_jax.generate import random_problem
 from ampc_jax.reference import solve_reference
+from ampc_jax.results import Status
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -22,7 +23,7 @@ def stack(datas):
 
 def reference(problem, data):
     ref = solve_reference(problem.topology, data, eps=REF_EPS)
-    assert ref.status == 0
+    assert ref.status == Status.SOLVED
     return ref
 
 
@@ -41,7 +42,7 @@ def test_finish_matches_clarabel(n_obj, rho):
     active = 0
     for b, (p, d) in enumerate(zip(problems, datas, strict=True)):
         ref = reference(p, d)
-        assert int(res.status[b]) == 0
+        assert int(res.status[b]) == Status.SOLVED
         if finished[b]:
             assert np.max(np.abs(np.asarray(res.u[b]) - ref.u)) < 1e-5, b
         lb, ub = np.asarray(d.lb), np.asarray(d.ub)

@@ -18,6 +18,22 @@ from ._errors import (
     TransportError as TransportError,
 )
 
+__all__ = [
+    "Bridge",
+    "CanBridgeError",
+    "CommandError",
+    "ConfigError",
+    "StateError",
+    "TransportError",
+    "__version__",
+    "DEFAULT_CONFIG_TOML",
+    "dbc_path",
+    "default_config_path",
+    "load_config",
+    "e2e_p01_crc",
+    "encode_message",
+]
+
 __version__: str
 DEFAULT_CONFIG_TOML: str
 
@@ -86,6 +102,7 @@ class Stats(TypedDict):
     rx_implausible: int
     rx_implausible_rate: int
     rx_inconsistent: int
+    rx_faster_than_cycle: int
     rx_discarded: int
     rx_length_errors: int
     rx_malformed: int
@@ -105,8 +122,8 @@ class Stats(TypedDict):
 
 @final
 class Bridge:
-    def __init__(
-        self,
+    def __new__(
+        cls,
         channel: str,
         period_ms: float | None = None,
         *,
@@ -146,7 +163,7 @@ class Bridge:
         rx_wheels: dict[str, float] | None = None,
         trace_capacity: int | None = None,
         rt_priority: int | None = None,
-    ) -> None: ...
+    ) -> Bridge: ...
     def start(self) -> None: ...
     def stop(self) -> None: ...
     def __enter__(self) -> Bridge: ...

@@ -1,6 +1,7 @@
 """Exception hierarchy of can_bridge, declared once.
 
-Each Rust error kind maps to exactly one class here (see ``src/python.rs``).
+Each Rust error kind maps to exactly one class here (the one
+``From<Error> for PyErr`` in ``can_bridge/src/python/mod.rs``).
 Every class also derives from the built-in exception users already catch.
 """
 

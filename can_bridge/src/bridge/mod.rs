@@ -22,8 +22,8 @@ use crate::e2e::{self, SmConfig};
 use crate::error::{clip, Error, Result};
 use crate::plausibility::Plausibility;
 use crate::safety::SafetyConfig;
+use crate::sync::lock;
 use std::path::PathBuf;
-use std::sync::{Mutex, MutexGuard};
 
 /// What the bridge does when its transport is lost.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -217,12 +217,6 @@ impl BridgeConfig {
         }
         Ok(spec)
     }
-}
-
-/// Lock a mutex, recovering from poisoning (a panicked holder leaves data
-/// that is still consistent: every critical section only copies or counts).
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 /// `clip` re-exported for the pyo3 layer's messages.

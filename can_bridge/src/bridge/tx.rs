@@ -657,7 +657,7 @@ mod tests {
 
     #[test]
     fn a_channel_that_opens_late_gets_a_ramp_from_zero() {
-        // Issue 29 item 1: the limiter does not advance while nothing goes out.
+        // Rule: the limiter does not advance while nothing goes out.
         let (frames, shared, _, ticks) = held_at_100(|n| {
             if n < 10 {
                 Outcome::NOT_OPEN
@@ -823,14 +823,8 @@ mod tests {
         assert_eq!((tx.tx_errors, tx.ramp_restarts), (1, 1));
     }
 
+    use crate::test_support::cases;
     use proptest::prelude::*;
-
-    fn cases() -> u32 {
-        std::env::var("CAN_BRIDGE_PROPTEST_CASES")
-            .ok()
-            .and_then(|s| s.parse().ok())
-            .unwrap_or(300)
-    }
 
     fn arb_outcome() -> impl Strategy<Value = Outcome> {
         prop_oneof![
@@ -843,7 +837,7 @@ mod tests {
     }
 
     proptest! {
-        #![proptest_config(ProptestConfig::with_cases(cases()))]
+        #![proptest_config(ProptestConfig::with_cases(cases(300)))]
 
         /// Whatever the transport does, the sequence the wire saw (frames
         /// written, less those flushed unread) moves by at most one step a

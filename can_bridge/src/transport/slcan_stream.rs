@@ -45,6 +45,7 @@ use crate::error::{clip, Error, Result};
 use crate::frame::CanFrame;
 use crate::scheduler::monotonic_ns;
 use crate::slcan::{self, parse_command, Cmd, Event};
+use crate::sync;
 use std::collections::VecDeque;
 use std::ffi::CString;
 use std::io;
@@ -191,7 +192,7 @@ impl Port {
         loop {
             match self.fd.write(bytes) {
                 Ok(n) if n == bytes.len() => {
-                    let mut l = self.ledger.lock().unwrap_or_else(|e| e.into_inner());
+                    let mut l = sync::lock(&self.ledger);
                     l.total += n as u64;
                     let end = l.total;
                     l.lines.push_back(Line::new(bytes, end, continues));
@@ -206,7 +207,7 @@ impl Port {
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, ()> {
-        self.write_lock.lock().unwrap_or_else(|e| e.into_inner())
+        sync::lock(&self.write_lock)
     }
 
     /// The transmit thread's lock: announced, so the receive thread yields it.
@@ -232,7 +233,7 @@ impl Port {
         if let Some(k) = &self.slave_keeper {
             // SAFETY: k is an open tty descriptor.
             unsafe { libc::tcflush(k.raw(), libc::TCIFLUSH) };
-            *self.ledger.lock().unwrap_or_else(|e| e.into_inner()) = Ledger::default();
+            *sync::lock(&self.ledger) = Ledger::default();
         }
     }
 
@@ -311,10 +312,10 @@ impl Port {
             }
         };
         if unread == 0 {
-            *self.ledger.lock().unwrap_or_else(|e| e.into_inner()) = Ledger::default();
+            *sync::lock(&self.ledger) = Ledger::default();
             return Unread::Nothing;
         }
-        let mut l = self.ledger.lock().unwrap_or_else(|e| e.into_inner());
+        let mut l = sync::lock(&self.ledger);
         let consumed = l.total.saturating_sub(unread);
         while let Some(e) = l.lines.front().map(|x| x.end).filter(|&e| e <= consumed) {
             l.done = e;

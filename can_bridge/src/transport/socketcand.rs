@@ -34,6 +34,7 @@ use crate::error::{clip, Error, Result};
 use crate::frame::CanFrame;
 use crate::scheduler::monotonic_ns;
 use crate::socketcand::{encode_send, Decoder, Event};
+use crate::sync;
 use std::collections::VecDeque;
 use std::io::{self, Read, Write};
 use std::net::{TcpStream, ToSocketAddrs};
@@ -267,7 +268,7 @@ impl Link {
 
     fn down(&self) {
         self.health.link_up.store(false, Ordering::Release);
-        if let Some(s) = self.tx.lock().unwrap_or_else(|e| e.into_inner()).take() {
+        if let Some(s) = sync::lock(&self.tx).take() {
             let _ = s.shutdown(std::net::Shutdown::Both);
         }
     }
@@ -328,7 +329,7 @@ impl Sink for TcpSink {
             flushed: 0,
         };
         // The receive thread holds this only to swap in a new connection.
-        let Ok(mut guard) = link.tx.try_lock() else {
+        let Some(mut guard) = sync::try_lock(&link.tx) else {
             return Ok(busy);
         };
         let stream = match self.stream(&mut guard) {
@@ -356,7 +357,7 @@ impl Sink for TcpSink {
 
     fn write(&mut self, frame: &CanFrame) -> Result<Written> {
         let link = self.link.clone();
-        let Ok(mut guard) = link.tx.try_lock() else {
+        let Some(mut guard) = sync::try_lock(&link.tx) else {
             return Ok(Written::Dropped);
         };
         let stream = match self.stream(&mut guard) {
@@ -403,7 +404,7 @@ impl Sink for TcpSink {
         {
             return;
         }
-        let Ok(mut guard) = link.tx.try_lock() else {
+        let Some(mut guard) = sync::try_lock(&link.tx) else {
             return;
         };
         if let Ok(Some(stream)) = self.stream(&mut guard) {
@@ -422,7 +423,7 @@ impl Sink for TcpSink {
     }
 
     fn close(&mut self) {
-        let mut guard = self.link.tx.lock().unwrap_or_else(|e| e.into_inner());
+        let mut guard = sync::lock(&self.link.tx);
         if let Some(stream) = guard.as_mut() {
             let _ = self.writer.flush(stream, CLOSE_BUDGET_MS);
             let _ = stream.shutdown(std::net::Shutdown::Write);
@@ -475,7 +476,7 @@ impl TcpSource {
                     .try_clone()
                     .map_err(|e| Error::io(&format!("{}: clone socket", self.link.what), &e))?;
                 self.link.reset_echoes();
-                *self.link.tx.lock().unwrap_or_else(|e| e.into_inner()) = Some(stream);
+                *sync::lock(&self.link.tx) = Some(stream);
                 self.link.generation.fetch_add(1, Ordering::AcqRel);
                 self.stream = Some(rx);
                 self.dec = dec;
