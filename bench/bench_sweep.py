@@ -66,6 +66,7 @@ Run (both cores as two XLA devices: ``--devices 2`` sets
     python bench/bench_sweep.py --devices 2 --tune-tol          # the committed run
     python bench/bench_sweep.py --devices 2 --tune-tol --full   # adds 100,000 cases
     python bench/bench_sweep.py --smoke --devices 2             # tiny sizes; no result file
+    python bench/bench_sweep.py --devices 2 --only throughput --cases 1000 --finish none
 
 Needs daqp and qpax (the ``bench`` extra). Result file:
 ``bench/results/bench_sweep.json`` (``--out``; ``bench/_meta.py``).
@@ -399,6 +400,8 @@ def section_throughput(args: Any, devs: list) -> dict[str, Any]:
     from ampc_jax.sweep import family, sweep_solve
 
     sizes = list(SMOKE_CASES if args.smoke else CASES + (FULL_CASES if args.full else ()))
+    if args.cases:  # the sizes given
+        sizes = args.cases
     n_max = max(sizes)
     t0 = time.perf_counter()
     cases = family("cruise_step").sample(n_max, 0, horizon=HORIZON)
@@ -867,6 +870,12 @@ def main(argv: list[str] | None = None) -> int:
         help="print Local Explicit's error for tolerances 1 .. 1e-8 and pick LE_TOL",
     )
     ap.add_argument("--smoke", action="store_true", help="tiny sizes, a check of the code")
+    ap.add_argument(
+        "--cases",
+        type=lambda v: [int(c) for c in v.split(",")],
+        default=None,
+        help="comma-separated case counts of the throughput section (default 1,10,100,1000,10000)",
+    )
     ap.add_argument(
         "--finish",
         default="active_set",
