@@ -36,6 +36,7 @@ from ..formulations import (
     formulation_names,
     formulation_options,
 )
+from ..formulations.local_explicit import PAPER_ITERATION
 from ..problem.data import ProblemData, make_data
 from ..problem.topology import Topology
 from ..results import usable
@@ -100,7 +101,8 @@ class Controller:
     max_iter, anderson : the solver's static options (defaults 200, 0).
     finish : the solver's exact finish where the formulation has one
         (``"none"``, default: the paper's iteration; ``"active_set"``:
-        :mod:`~ampc_jax.admm.finish`).
+        :mod:`~ampc_jax.admm.finish`). rho_j is eq.opt_ro's at every step
+        either way (:data:`~ampc_jax.formulations.PAPER_ITERATION`).
     warm_start : start each step from the previous step's state (default True).
     warm_shift : 1 shifts that state one step along the horizon, 0 holds it.
     vehicle : the vehicle data the model uses.
@@ -196,7 +198,10 @@ class Controller:
 
     @property
     def _formulation(self) -> Formulation:
-        extra = {"finish": self.finish} if "finish" in formulation_options(self.formulation) else {}
+        # the paper's iteration (eq.opt_ro at every step) with the finish asked for,
+        # where the formulation takes those options
+        opts = formulation_options(self.formulation)
+        extra = {k: v for k, v in {**PAPER_ITERATION, "finish": self.finish}.items() if k in opts}
         return formulation(
             self.formulation,
             self.topology,

@@ -14,7 +14,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from ..formulations import IntegratedADMM
+from ..formulations import PAPER_ITERATION, IntegratedADMM
 from ..results import usable
 from .config import SimConfig
 from .controller import controller_for
@@ -65,7 +65,10 @@ def replay_timing(
     le = ctrl.solver
     p_le = config.loop_params(dtype).controller.solver
     ia = IntegratedADMM(
-        T, max_iter=max(config.max_iter, 2000), anderson=config.anderson, finish=config.finish
+        T,
+        max_iter=max(config.max_iter, 2000),
+        anderson=config.anderson,
+        **{**PAPER_ITERATION, "finish": config.finish},
     )
     p_ia = ia.params(
         rho=config.integrated_rho_scale,

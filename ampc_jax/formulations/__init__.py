@@ -17,7 +17,7 @@ from ..admm.core import ADMMSolver, FormulationInfo
 from .consensus import ConsensusADMM, ConsensusSetup, ConsensusState
 from .fully_distributed import FullyDistributed
 from .integrated import IntegratedADMM
-from .local_explicit import LocalExplicit, LocalSetup
+from .local_explicit import PAPER_ITERATION, LocalExplicit, LocalSetup
 from .registry import (
     DEFAULT_FORMULATION,
     FORMULATIONS,
@@ -45,6 +45,7 @@ __all__ = [
     "FullyDistributed",
     "IntegratedADMM",
     "LocalExplicit",
+    "PAPER_ITERATION",
     "LocalSetup",
     "VirtualCenter",
     "check_formulation",

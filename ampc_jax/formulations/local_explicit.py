@@ -95,7 +95,7 @@ from ..problem.topology import Topology
 from ..results import SolveResult, SolveStats, Status
 from ..validation import check_count
 
-__all__ = ["DUAL_RESIDUALS", "RHO_METHODS", "LocalExplicit", "LocalSetup"]
+__all__ = ["DUAL_RESIDUALS", "PAPER_ITERATION", "RHO_METHODS", "LocalExplicit", "LocalSetup"]
 
 RHO_METHODS = ("power", "eigh", "given", "carried")
 """How rho_j is found: eq.opt_ro by Lanczos steps or exactly, or carried by the
@@ -103,6 +103,14 @@ warm start from the previous step (times ``params.rho``), or ``params.rho`` itse
 
 DUAL_RESIDUALS = ("slack", "paper")
 """Forms of the dual stopping test (see :class:`LocalExplicit`)."""
+
+PAPER_ITERATION: dict[str, str] = {"finish": "none", "rho_method": "power"}
+"""The options of the paper's iteration (eq.opt_ro estimated at every solve, no
+exact finish) over :class:`LocalExplicit`'s defaults: what the closed-loop
+reproduction's controller, shadow and timing replay run (their figures are the
+paper's iteration's, docs/results.md) and what the tuning measures and trains
+on (it tunes the iteration itself: a finished iterate is no fixed point of the
+map, :mod:`~ampc_jax.admm.implicit`)."""
 
 
 class LocalSetup(NamedTuple):

@@ -68,7 +68,7 @@ def evaluate_starts(
     ``{"cases", "tol", "rows": [{name, median, p95, max, converged, u0_error,
     u0_rel_error}]}``; ``u0_error`` is the worst ||u0 - u0*|| against Clarabel.
     """
-    from ..formulations import formulation
+    from ..formulations import PAPER_ITERATION, formulation
     from .solver import reference_inputs
 
     T = held.topology
@@ -79,20 +79,32 @@ def evaluate_starts(
     u0_star = reference_inputs(T, held.data)[:, 0, :]
     cmd = (tuned_for["rho_scale"], float(tuned_for["relaxation"]), int(tuned_for["anderson"]))
     contenders: list[tuple[str, Any, Any, float]] = [
-        ("eq.opt_ro, cold", formulation("local_explicit", T, max_iter=max_iter), 1.0, 1.0),
+        (
+            "eq.opt_ro, cold",
+            formulation("local_explicit", T, max_iter=max_iter, **PAPER_ITERATION),
+            1.0,
+            1.0,
+        ),
         (
             "command, cold",
-            formulation("local_explicit", T, max_iter=max_iter, anderson=cmd[2]),
+            formulation("local_explicit", T, max_iter=max_iter, anderson=cmd[2], **PAPER_ITERATION),
             cmd[0],
             cmd[1],
         ),
     ]
     for name, (rs, alpha, aa) in (extra or {}).items():
         contenders.append(
-            (name, formulation("local_explicit", T, max_iter=max_iter, anderson=aa), rs, alpha)
+            (
+                name,
+                formulation("local_explicit", T, max_iter=max_iter, anderson=aa, **PAPER_ITERATION),
+                rs,
+                alpha,
+            )
         )
     if model is not None:
-        inner = formulation("local_explicit", T, max_iter=max_iter, anderson=cmd[2])
+        inner = formulation(
+            "local_explicit", T, max_iter=max_iter, anderson=cmd[2], **PAPER_ITERATION
+        )
         contenders.append(("learned start", LearnedStart(inner, model), cmd[0], cmd[1]))
     rows = [
         point_row(
