@@ -56,6 +56,7 @@ def evaluate_starts(
     *,
     max_iter: int = 500,
     extra: dict[str, tuple[Any, float, int]] | None = None,
+    finish: str = "none",
 ) -> dict[str, Any]:
     """Iterations to tolerance on the step cases ``held`` from three starts.
 
@@ -67,11 +68,15 @@ def evaluate_starts(
     relaxation, anderson) from a cold start (a rho-tuned point). Returns
     ``{"cases", "tol", "rows": [{name, median, p95, max, converged, u0_error,
     u0_rel_error}]}``; ``u0_error`` is the worst ||u0 - u0*|| against Clarabel.
+    ``finish``: every contender's exact finish (default ``"none"``, the paper's
+    iteration the start is trained on; ``"active_set"``: the iterations to a
+    verified finish, :mod:`~ampc_jax.admm.finish`).
     """
     from ..formulations import PAPER_ITERATION, formulation
     from .solver import reference_inputs
 
     T = held.topology
+    iteration = {**PAPER_ITERATION, "finish": finish}
     J = T.n_objectives
     dt = jax.tree.leaves(held.data)[0].dtype
     n = int(jax.tree.leaves(held.data)[0].shape[0])
@@ -81,13 +86,13 @@ def evaluate_starts(
     contenders: list[tuple[str, Any, Any, float]] = [
         (
             "eq.opt_ro, cold",
-            formulation("local_explicit", T, max_iter=max_iter, **PAPER_ITERATION),
+            formulation("local_explicit", T, max_iter=max_iter, **iteration),
             1.0,
             1.0,
         ),
         (
             "command, cold",
-            formulation("local_explicit", T, max_iter=max_iter, anderson=cmd[2], **PAPER_ITERATION),
+            formulation("local_explicit", T, max_iter=max_iter, anderson=cmd[2], **iteration),
             cmd[0],
             cmd[1],
         ),
@@ -96,15 +101,13 @@ def evaluate_starts(
         contenders.append(
             (
                 name,
-                formulation("local_explicit", T, max_iter=max_iter, anderson=aa, **PAPER_ITERATION),
+                formulation("local_explicit", T, max_iter=max_iter, anderson=aa, **iteration),
                 rs,
                 alpha,
             )
         )
     if model is not None:
-        inner = formulation(
-            "local_explicit", T, max_iter=max_iter, anderson=cmd[2], **PAPER_ITERATION
-        )
+        inner = formulation("local_explicit", T, max_iter=max_iter, anderson=cmd[2], **iteration)
         contenders.append(("learned start", LearnedStart(inner, model), cmd[0], cmd[1]))
     rows = [
         point_row(
