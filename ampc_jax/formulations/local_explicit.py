@@ -240,9 +240,12 @@ class LocalExplicit(ADMMSolver):
         plainly to tolerance and differentiates that fixed point). Rule:
         ``"active_set"``; reason: DAQP's accuracy at any tolerance and fewer
         iterations (bench/bench_peers.py's drives: worst error 5.9e-3 ->
-        3.1e-6 Nm, warm iterations 33.4 -> 0; bench/bench_sweep.py's cold
-        cruise_step pairs: 55.7 -> 17.7 iterations, 2.3x the pair rate;
-        docs/bench_peers.md, docs/bench_sweep.md).
+        3.1e-6 Nm, warm iterations 33.4 -> 0; bench/bench_sweep.py's 1,000
+        cold cruise_step cases x 4 rho: 122.6 -> 25.9 iterations, LE / DAQP
+        0.10 -> 0.26; docs/bench_peers.md, docs/bench_sweep.md). Where it
+        costs: a single step at N_p = 2 or 3 with a few warm iterations, where
+        one finish takes longer than they do (the closed loop's cruise step
+        396 -> 816 us; docs/results.md, "The exact finish in closed loop").
     finish_every : iterations between finish attempts (default 8,
         :data:`~ampc_jax.admm.finish.FINISH_EVERY`).
     finish_first : iterations before the first attempt (default 0: the start's
