@@ -233,9 +233,10 @@ def _parts_of(solver: ADMMSolver) -> tuple[Any, Any, Any]:
         return carry[0] if solver.anderson else carry
 
     def carry_of(setup: Any, st: Any) -> Any:
-        return loop_parts(
+        carry, body, _ = loop_parts(
             lambda s: solver.step(setup, s), st, solver.anderson, solver.point, solver.at
-        )[0]
+        )
+        return _first_attempt(solver, setup, body, iterate_of, lambda c: running(setup, c), carry)
 
     def running(setup: Any, carry: Any) -> Any:
         return still_running(
@@ -250,14 +251,8 @@ def _parts_of(solver: ADMMSolver) -> tuple[Any, Any, Any]:
             solver.point,
             solver.at,
         )
-        return run_segment(
-            body,
-            iterate_of,
-            lambda c: running(setup, c),
-            carry,
-            length,
-            finish=solver.finisher(setup),
-            anderson=solver.anderson,
+        return _run_segment(
+            solver, setup, body, iterate_of, lambda c: running(setup, c), carry, length
         )
 
     return carry_of, segment_of, running
@@ -274,7 +269,7 @@ def _iterate_refill(
     segment per segment, idle only once no pair waits."""
     B = int(np.shape(jax.tree.leaves(states)[0])[0])
     C = max(1, min(int(slots), B))
-    seg = check_segment(segment)
+    seg = _segment_length(solver, segment)
     carry_of, segment_of, running = _parts_of(solver)
     iterate_of = (lambda c: c[0]) if solver.anderson else (lambda c: c)
     carries = jax.vmap(carry_of)(setups, states)  # every pair's start, read when loaded
@@ -319,6 +314,55 @@ def check_segment(segment: Any) -> int:
     return int(segment)
 
 
+def _segment_length(solver: ADMMSolver, segment: Any) -> int:
+    """The engine's segment: ``segment`` iterations, rounded up to a multiple of the
+    solver's ``finish_every`` where it has an exact finish, so that its finish
+    attempts fall on the iterations :meth:`~ampc_jax.admm.core.ADMMSolver.run` tries
+    them at (each pair's result and count are those of its own solve)."""
+    seg = check_segment(segment)
+    if type(solver).finisher is ADMMSolver.finisher:  # no finish: any length
+        return seg
+    every = int(solver.finish_every)
+    return every * -(-seg // every)
+
+
+def _run_segment(
+    solver: ADMMSolver,
+    setup: Any,
+    body: Any,
+    iterate_of: Any,
+    running: Any,
+    carry: Any,
+    length: int,
+) -> Any:
+    """``length`` iterations of one pair (:func:`~ampc_jax.admm.runners.run_segment`);
+    with the solver's exact finish, in pieces of ``finish_every`` iterations, each
+    ended by a finish attempt, as :meth:`~ampc_jax.admm.core.ADMMSolver.run` does."""
+    fin = solver.finisher(setup)
+    if fin is None:
+        return run_segment(body, iterate_of, running, carry, length, anderson=solver.anderson)
+    every = int(solver.finish_every)
+    for _ in range(length // every):
+        carry = run_segment(
+            body, iterate_of, running, carry, every, finish=fin, anderson=solver.anderson
+        )
+    return carry
+
+
+def _first_attempt(
+    solver: ADMMSolver, setup: Any, body: Any, iterate_of: Any, running: Any, carry: Any
+) -> Any:
+    """The start of one pair: with an exact finish, its ``finish_first`` iterations
+    and first attempt (0: the start's own active set), as ``run`` begins."""
+    fin = solver.finisher(setup)
+    if fin is None:
+        return carry
+    first = int(solver.finish_first)
+    return run_segment(
+        body, iterate_of, running, carry, first, finish=fin, anderson=solver.anderson
+    )
+
+
 def _iterate_all(
     solver: ADMMSolver,
     setups: Any,
@@ -348,21 +392,22 @@ def _iterate_all(
         it = finals.iteration
         work = Work(B * jnp.max(it), jnp.sum(it))
     else:
-        seg = check_count(segment, "segment")
+        check_count(segment, "segment")
+        seg = _segment_length(solver, segment)
 
         def segment_of(setup: Any, carry: Any) -> Any:
             _, body, _ = parts(setup, iterate_of(carry))
-            return run_segment(
-                body,
-                iterate_of,
-                lambda c: running(setup, c),
-                carry,
-                seg,
-                finish=solver.finisher(setup),
-                anderson=solver.anderson,
+            return _run_segment(
+                solver, setup, body, iterate_of, lambda c: running(setup, c), carry, seg
             )
 
-        carry0 = jax.vmap(lambda s, st: parts(s, st)[0])(setups, states)
+        def start_of(setup: Any, st: Any) -> Any:
+            carry, body, _ = parts(setup, st)
+            return _first_attempt(
+                solver, setup, body, iterate_of, lambda c: running(setup, c), carry
+            )
+
+        carry0 = jax.vmap(start_of)(setups, states)
         sizes = bucket_sizes(B, min_bucket)
         ladder = jnp.asarray(sizes)
 
