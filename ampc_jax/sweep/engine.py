@@ -160,7 +160,8 @@ def solve_pairs(
     ``refill`` True (default, with ``compaction``) runs ``chunk`` slots (continuous
     batching): after each segment a pair that has stopped hands its slot to the
     next waiting pair, so a slot never idles while pairs wait
-    (:func:`_iterate_refill`); False compacts each chunk on its own. Rule:
+    (:func:`_iterate_refill`; with no more pairs than slots, compaction instead:
+    no pair waits); False compacts each chunk on its own. Rule:
     refill; reason: on bench/bench_sweep.py's 800 cold ``cruise_step`` pairs with
     the exact finish, waste 1.21 -> 1.16 and the pair rate 1.19x
     (docs/bench_sweep.md).
@@ -171,8 +172,12 @@ def solve_pairs(
     states = jax.vmap(solver.init)(setups)
     if chunk is not None and (isinstance(chunk, bool) or int(chunk) < 1):
         raise ValueError(f"chunk: expected an integer >= 1 or None, got {chunk!r}")
-    if compaction and refill:
-        slots = CHUNK if chunk is None else int(chunk)
+    slots = CHUNK if chunk is None else int(chunk)
+    B = int(np.shape(jax.tree.leaves(states)[0])[0])
+    # continuous batching pays while pairs wait for a slot; with no more pairs than
+    # slots every slot would idle until the slowest pair stops (vmap's work), which
+    # compaction avoids
+    if compaction and refill and B > slots:
         finals, work = _iterate_refill(solver, setups, states, segment, slots)
     else:
         finals, work = _iterate(solver, setups, states, compaction, segment, min_bucket, chunk)
