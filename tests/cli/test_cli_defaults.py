@@ -83,8 +83,8 @@ def test_simulate_names_the_examples_defaults_in_its_header(tmp_path, capsys):
     rs = ", ".join(f"{x:g}" for x in d["rho_scale"])
     assert out.splitlines()[0] == (
         f"ampc simulate: stability_dlc, local_explicit, rho scale ({rs}), relaxation "
-        f"{d['relaxation']:g}, Anderson {d['anderson']} (the stability example's defaults "
-        f"where no flag or --params gave one)"
+        f"{d['relaxation']:g}, Anderson {d['anderson']}, finish {d['finish']} (the stability "
+        f"example's defaults where no flag or --params gave one)"
     )
     m = json.loads((tmp_path / "s" / "metrics.json").read_text())
     assert m["relaxation"] == d["relaxation"] and m["anderson"] == d["anderson"]
