@@ -104,8 +104,9 @@ Run (``--kkt``: default every name in ``ampc_jax.admm.kkt.KKT_SOLVES`` but
     python bench/bench_peers.py --full            # adds 100,000 cases
     taskset -c 1 python bench/bench_peers.py --only latency
     python bench/bench_peers.py --horizons 10 --max-batch 1000 --out /tmp/peers.json
-    python bench/bench_peers.py --finish active_set --rho-method carried   # the exact
-                                                  # finish and the carried rho (LE's options)
+    python bench/bench_peers.py --finish none --rho-method power   # the paper's
+                                                  # iteration (default: the library's exact
+                                                  # finish and carried rho)
     python bench/bench_peers.py --smoke           # N_p 10, float64, the "auto" K, one
                                                   # 6-step latency drive, batches 1 and
                                                   # 10 of 3-step drives (about 50 s)
@@ -648,6 +649,19 @@ class PeerPool:
 
 
 # -- Local Explicit programs -------------------------------------------------------------------
+def drive_waste(iterations: Any, chunk: int = VMAP_CHUNK) -> float:
+    """Iterations run / iterations needed of vmapped drives: ``iterations`` (cases, steps),
+    the drives vmapped in consecutive chunks of ``chunk`` (:class:`LEBatch`), where each
+    step's ``while_loop`` runs every drive of the chunk to the chunk's slowest solve of
+    that step (1: no waste)."""
+    its = np.asarray(iterations, float)
+    run = sum(
+        its[c : c + chunk].shape[0] * float(np.sum(np.max(its[c : c + chunk], axis=0)))
+        for c in range(0, its.shape[0], chunk)
+    )
+    return run / max(float(np.sum(its)), 1.0)
+
+
 class LEBatch:
     """Local Explicit on batches of drives: vmapped (chunks of VMAP_CHUNK drives) over every
     device, scanned over the steps (step 0 from the cold state, then warm), one compiled
@@ -1648,21 +1662,29 @@ def throughput_one(
     say(
         f"\nN_p = {h}: Local Explicit, data + setup alone against the full step (us a step, {setup_B:,} cases, {len(jax.devices())} device(s))\n"
     )
-    say("| contender | data + setup | full step | setup share | iterations mean |")
-    say("| --- | --- | --- | --- | --- |")
+    say(
+        "| contender | data + setup | full step | setup share | iterations mean "
+        "| waste (run / needed) |"
+    )
+    say("| --- | --- | --- | --- | --- | --- |")
     brk = {}
     for name in les:
         ts, tf = rate(setup_B, f"{name} data + setup"), rate(setup_B, name)
         if not ts or not tf:
             continue
         its = float(np.mean(outputs[name][1]["iterations"])) if name in outputs else float("nan")
+        waste = drive_waste(outputs[name][1]["iterations"]) if name in outputs else float("nan")
         brk[name] = {
             "setup_us": 1e6 / ts,
             "full_us": 1e6 / tf,
             "share": tf / ts,
             "iterations_mean": its,
+            "waste": waste,
         }
-        say(f"| {name} | {1e6 / ts:.1f} | {1e6 / tf:.1f} | {100 * tf / ts:.0f} % | {its:.1f} |")
+        say(
+            f"| {name} | {1e6 / ts:.1f} | {1e6 / tf:.1f} | {100 * tf / ts:.0f} % | {its:.1f} "
+            f"| {waste:.2f} |"
+        )
     say(
         f"\nN_p = {h}: Local Explicit's flop rate at its largest batch (XLA: the batched program's own count, "
         "a loop body counted once; estimate: every solve's data + setup + mean iterations x one iteration)\n"
@@ -1782,13 +1804,16 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument(
         "--finish",
-        default="none",
-        help="Local Explicit's finish: none (default, the paper's iteration) or active_set",
+        default="active_set",
+        choices=("active_set", "none"),
+        help="Local Explicit's finish: active_set (default, the library's: the exact "
+        "finish) or none (the paper's iteration alone)",
     )
     ap.add_argument(
         "--rho-method",
-        default="power",
-        help="Local Explicit's rho rule: power (default), carried, eigh or given",
+        default="carried",
+        choices=("carried", "power", "eigh", "given"),
+        help="Local Explicit's rho rule: carried (default, the library's), power, eigh or given",
     )
     ap.add_argument("--max-batch", type=int, default=None, help="largest batch size")
     ap.add_argument("--full", action="store_true", help="add 100,000 cases")

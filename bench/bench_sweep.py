@@ -66,6 +66,7 @@ Run (both cores as two XLA devices: ``--devices 2`` sets
     python bench/bench_sweep.py --devices 2 --tune-tol          # the committed run
     python bench/bench_sweep.py --devices 2 --tune-tol --full   # adds 100,000 cases
     python bench/bench_sweep.py --smoke --devices 2             # tiny sizes; no result file
+    python bench/bench_sweep.py --devices 2 --only throughput --cases 1000 --finish none
 
 Needs daqp and qpax (the ``bench`` extra). Result file:
 ``bench/results/bench_sweep.json`` (``--out``; ``bench/_meta.py``).
@@ -103,6 +104,7 @@ ANDERSON = 3  # the closed-loop default
 MAX_ITER = 500
 TOL_SCAN = (1.0, 1e-1, 1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8)
 LE_OPTIONS: dict[str, Any] = {}  # Local Explicit's strategy options (--finish)
+SWEEP_OPTIONS: dict[str, Any] = {}  # the engine's options (--no-refill)
 LE_TOL = 1e-8  # Nm^2, the default; --tune-tol picks the loosest power of ten under ERR_TARGET
 CASES = (1, 10, 100, 1000, 10000)
 FULL_CASES = (100000,)
@@ -383,7 +385,7 @@ def tune_tol(cases: Any, ref: np.ndarray, devs: list) -> list[dict[str, Any]]:
     rows = []
     for tol in TOL_SCAN:
         solver, pd_, pp, _ = le_setup(cases, tol, n)
-        res, _ = jax.block_until_ready(sweep_solve(solver, pd_, pp, devices=devs))
+        res, _ = jax.block_until_ready(sweep_solve(solver, pd_, pp, devices=devs, **SWEEP_OPTIONS))
         worst, med = _err(np.asarray(res.u0), np.repeat(ref, len(RHO_GRID), axis=0))
         its = np.asarray(res.iterations)
         rows.append({"tol": tol, "err_max": worst, "err_median": med, "it_max": int(its.max())})
@@ -398,6 +400,8 @@ def section_throughput(args: Any, devs: list) -> dict[str, Any]:
     from ampc_jax.sweep import family, sweep_solve
 
     sizes = list(SMOKE_CASES if args.smoke else CASES + (FULL_CASES if args.full else ()))
+    if args.cases:  # the sizes given
+        sizes = args.cases
     n_max = max(sizes)
     t0 = time.perf_counter()
     cases = family("cruise_step").sample(n_max, 0, horizon=HORIZON)
@@ -456,11 +460,11 @@ def section_throughput(args: Any, devs: list) -> dict[str, Any]:
 
     # accuracy of every contender on the reference subset
     solver, pd_, pp, _ = le_setup(cases, tol, n_ref)
-    res, _ = sweep_solve(solver, pd_, pp, devices=devs)
+    res, _ = sweep_solve(solver, pd_, pp, devices=devs, **SWEEP_OPTIONS)
     acc = {"Local Explicit": _err(np.asarray(res.u0), np.repeat(ref, P, axis=0))}
     if not args.smoke:  # a compile fewer in the smoke run
         s_p, pd_p, pp_p, _ = le_setup(paper, tol, n_ref)
-        res_p, _ = sweep_solve(s_p, pd_p, pp_p, devices=devs)
+        res_p, _ = sweep_solve(s_p, pd_p, pp_p, devices=devs, **SWEEP_OPTIONS)
         acc["Local Explicit, the paper's groups (not timed)"] = _err(
             np.asarray(res_p.u0), np.repeat(ref, P, axis=0)
         )
@@ -503,7 +507,12 @@ def section_throughput(args: Any, devs: list) -> dict[str, Any]:
             solver, pd_, pp, _ = le_setup(cases, tol, n)
             pd_, pp = jax.device_put((pd_, pp))
             dq = jax.device_put(_take(cases.data, 0, n), devs[0])
-            f_le = lambda: jax.block_until_ready(sweep_solve(solver, pd_, pp, devices=devs))  # noqa: B023, E731
+
+            def f_le(solver=solver, pd_=pd_, pp=pp):  # this size's program
+                return jax.block_until_ready(
+                    sweep_solve(solver, pd_, pp, devices=devs, **SWEEP_OPTIONS)
+                )
+
             f_q = lambda: jax.block_until_ready(qp_fn(dq))  # noqa: B023, E731
             # warm-up of each, then the timed calls interleaved contender by contender
             res, _ = f_le()
@@ -584,15 +593,21 @@ def section_waste(args: Any, devs: list) -> dict[str, Any]:
         pd_, pp = jax.device_put((pair_data(cases.data, P), pair_params(grid, n)))
         base = None
         for comp, seg in [(False, 16)] + [(True, s) for s in segs]:
-            f = lambda: jax.block_until_ready(  # noqa: E731
-                sweep_solve(solver, pd_, pp, devices=devs, compaction=comp, segment=seg)  # noqa: B023
-            )
+
+            def f(comp=comp, seg=seg, solver=solver, pd_=pd_, pp=pp):  # this row
+                return jax.block_until_ready(
+                    sweep_solve(
+                        solver, pd_, pp, devices=devs, compaction=comp, segment=seg, **SWEEP_OPTIONS
+                    )
+                )
+
             t, (res, work) = _median_time(f, args.repeats)
             waste = float(np.sum(np.asarray(work.computed))) / max(
                 float(np.sum(np.asarray(work.needed))), 1.0
             )
             base = t if base is None else base
-            label = "vmap while_loop" if not comp else f"compaction, segment {seg}"
+            how = "continuous batching" if SWEEP_OPTIONS.get("refill", True) else "compaction"
+            label = "vmap while_loop" if not comp else f"{how}, segment {seg}"
             its = np.asarray(res.iterations)
             rows.append(
                 {
@@ -856,13 +871,28 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--smoke", action="store_true", help="tiny sizes, a check of the code")
     ap.add_argument(
+        "--cases",
+        type=lambda v: [int(c) for c in v.split(",")],
+        default=None,
+        help="comma-separated case counts of the throughput section (default 1,10,100,1000,10000)",
+    )
+    ap.add_argument(
         "--finish",
-        default="none",
-        help="Local Explicit's finish: none (default, the paper's iteration) or active_set",
+        default="active_set",
+        choices=("active_set", "none"),
+        help="Local Explicit's finish: active_set (default, the library's: the exact "
+        "finish) or none (the paper's iteration alone)",
+    )
+    ap.add_argument(
+        "--no-refill",
+        action="store_true",
+        help="compact each chunk of pairs on its own instead of continuous batching "
+        "(default: continuous batching, the library's)",
     )
     _meta.add_out_argument(ap, STEM)
     args = ap.parse_args(argv)
     LE_OPTIONS.update(finish=args.finish)
+    SWEEP_OPTIONS.update(refill=not args.no_refill)
     args.le_tol = LE_TOL  # the throughput section's --tune-tol may change it
     if args.repeats is None:
         args.repeats = 1 if args.smoke else 3

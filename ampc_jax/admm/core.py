@@ -222,11 +222,13 @@ class ADMMSolver(abc.ABC):
     finish_every: int = 1
     finish_first: int = 1
 
-    def run(self, setup: Any, state: Any) -> Any:
+    def run(self, setup: Any, state: Any, *, finish: bool = True) -> Any:
         """``lax.while_loop`` until :meth:`converged`, ``max_iter`` or a non-finite
         residual (deployment; no reverse-mode derivative); with a finish
         (:meth:`finisher`), in segments of ``finish_every`` iterations, each
-        ended by a finish attempt."""
+        ended by a finish attempt. ``finish`` False iterates plainly whatever
+        the formulation's finish (the implicit gradient's forward pass,
+        :mod:`~.implicit`: its fixed point is the plain map's)."""
         return run_while(
             lambda st: self.step(setup, st),
             lambda st: self.converged(setup, st),
@@ -235,13 +237,14 @@ class ADMMSolver(abc.ABC):
             anderson=self.anderson,
             point=self.point,
             at=self.at,
-            finish=self.finisher(setup),
+            finish=self.finisher(setup) if finish else None,
             every=self.finish_every,
             first=self.finish_first,
         )
 
     def run_fixed(self, setup: Any, state: Any, iterations: int) -> Any:
-        """Exactly ``iterations`` iterations under ``lax.scan`` (differentiable)."""
+        """Exactly ``iterations`` iterations under ``lax.scan`` (differentiable; plain
+        iterations, never a finish: the finish is forward only)."""
         return run_fixed(
             lambda st: self.step(setup, st),
             state,

@@ -150,8 +150,10 @@ def run_implicit(
     adjoint_tol: Any = None,
     adjoint_max_iter: int | None = None,
 ) -> Any:
-    """``solver.run(setup, state)`` (the ``while_loop`` to tolerance, plain or
-    Anderson) with a reverse-mode derivative with respect to ``setup``: the
+    """``solver.run(setup, state, finish=False)`` (the ``while_loop`` to tolerance,
+    plain or Anderson, without the formulation's exact finish: a finished
+    iterate keeps the multipliers of the iterate it replaced, so it is no fixed
+    point of the map) with a reverse-mode derivative with respect to ``setup``: the
     adjoint of the plain map at the fixed point (module docstring). ``state``
     (the start) gets a zero cotangent: the fixed point does not depend on it.
 
@@ -163,10 +165,10 @@ def run_implicit(
 
     @jax.custom_vjp
     def fixed(setup: Any, start: Any) -> Any:
-        return solver.run(setup, start)
+        return solver.run(setup, start, finish=False)
 
     def fwd(setup: Any, start: Any) -> tuple[Any, Any]:
-        out = solver.run(setup, start)
+        out = solver.run(setup, start, finish=False)
         return out, (setup, out, start)
 
     def bwd(res: tuple, ct: Any) -> tuple[Any, Any]:
@@ -205,8 +207,10 @@ def solve_implicit(
     adjoint_tol: Any = None,
     adjoint_max_iter: int | None = None,
 ) -> SolveResult:
-    """:meth:`solver.solve <ampc_jax.admm.core.ADMMSolver.solve>` (same result,
-    same program forward) with reverse-mode derivatives with respect to ``data``
+    """:meth:`solver.solve <ampc_jax.admm.core.ADMMSolver.solve>` without its exact
+    finish (the iteration alone to tolerance: the finish is forward only, see
+    :func:`run_implicit`; with ``finish="none"`` the same result and program
+    forward as ``solve``) with reverse-mode derivatives with respect to ``data``
     (Q_j, R, references, x0, rows: every float leaf of
     :class:`~ampc_jax.problem.ProblemData`) and ``params`` (rho scales,
     relaxation) by implicit differentiation at the fixed point

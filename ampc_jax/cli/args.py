@@ -22,6 +22,7 @@ from ..validation import check_count, check_non_negative, check_positive, check_
 __all__ = [
     "enable_x64",
     "ANDERSON_MEMORIES",
+    "FINISH_CHOICES",
     "PARAMS_HELP",
     "Parser",
     "add_output_flags",
@@ -180,6 +181,10 @@ PARAMS_HELP = (
 ANDERSON_MEMORIES = (0, 1, 2, 3)
 """The Anderson memories ``--anderson`` takes (:data:`~ampc_jax.admm.acceleration.ANDERSON_MAX`)."""
 
+FINISH_CHOICES = ("none", "active_set")
+"""``--finish``'s choices: ``ampc_jax.admm.finish.FINISHES``, written out so that
+building the parser imports no JAX (tests/cli/test_cli_solve.py pins them equal)."""
+
 
 def add_solver_flags(
     p: argparse.ArgumentParser,
@@ -188,8 +193,10 @@ def add_solver_flags(
     anderson: str | None = None,
     max_iter: str | None = None,
     max_iter_default: int | None = None,
+    finish: str | None = None,
 ) -> None:
-    """``--relaxation`` (in (0, 2)), ``--anderson`` (0 to 3) and ``--max-iter`` (>= 1),
+    """``--relaxation`` (in (0, 2)), ``--anderson`` (0 to 3), ``--max-iter`` (>= 1)
+    and ``--finish`` (an exact finish, :data:`~ampc_jax.admm.finish.FINISHES`),
     each added when its help text is given (the command's own words and default;
     ``None`` as the parsed default means the command resolves it)."""
     if relaxation is not None:
@@ -204,6 +211,8 @@ def add_solver_flags(
         p.add_argument(
             "--max-iter", type=arg_type(at_least_one, int), default=max_iter_default, help=max_iter
         )
+    if finish is not None:
+        p.add_argument("--finish", choices=FINISH_CHOICES, default=None, help=finish)
 
 
 def add_params_flag(p: argparse.ArgumentParser, help: str = PARAMS_HELP) -> None:

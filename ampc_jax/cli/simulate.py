@@ -45,6 +45,7 @@ _FLAGS = {
     "integrated_rho_scale": "--integrated-rho-scale",
     "warm_shift": "--warm-shift",
     "anderson": "--anderson",
+    "finish": "--finish",
     "compare": "--compare",
     "duration": "--duration",
     "mu": "--mu",
@@ -247,6 +248,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             integrated_rho_scale=args.integrated_rho_scale,
             warm_shift=args.warm_shift,
             anderson=args.anderson,
+            finish=args.finish,
             actuators=args.actuators,
         )
         given = tuple(
@@ -324,7 +326,7 @@ def _header(scenario: str, cfg: Any, float32: bool = False) -> str:
     )
     return (
         f"ampc simulate: {scenario}, {cfg.formulation}, {objs}, rho scale {rs}, relaxation "
-        f"{o['relaxation']:g}, Anderson {o['anderson']}{start}, {dtype}{sets} (the "
+        f"{o['relaxation']:g}, Anderson {o['anderson']}, finish {o['finish']}{start}, {dtype}{sets} (the "
         f"{cfg.example} example's solver defaults where no flag or --params gave one)"
     )
 
@@ -509,6 +511,9 @@ def add_simulate_commands(sub: Any) -> None:
         anderson="Anderson acceleration memory for the controller and the integrated MPC; "
         "0 is plain ADMM, the paper (default: the example's value, 3)",
         max_iter="the controller's iteration cap (default: 200)",
+        finish="the exact finish of the controller's and the integrated MPC's solves: none "
+        "(the paper's iteration alone) or active_set (the active set's QP solved exactly "
+        "and KKT-checked) (default: the example's, none)",
     )
     p.add_argument(
         "--integrated-rho-scale",

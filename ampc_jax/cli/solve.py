@@ -37,6 +37,7 @@ _FLAGS = {
     "rho_scale": "--rho-scale",
     "relaxation": "--relaxation",
     "anderson": "--anderson",
+    "finish": "--finish",
     "max_iter": "--max-iter",
     "tol_primal": "--tol",
     "tol_dual": "--tol",
@@ -167,6 +168,7 @@ def _ignored(args: argparse.Namespace) -> list[tuple[str, list[str]]]:
                 ("--rho-scale", args.rho_scale is not None),
                 ("--relaxation", args.relaxation is not None),
                 ("--anderson", args.anderson is not None),
+                ("--finish", args.finish is not None),
                 ("--max-iter", args.max_iter is not None),
                 ("--tol-rel", args.tol_rel != 0.0),
                 ("--float32", args.float32),
@@ -188,7 +190,12 @@ def cmd_solve(args: argparse.Namespace) -> int:
         jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
-    from ..formulations import formulation, formulation_info, formulation_names
+    from ..formulations import (
+        formulation,
+        formulation_info,
+        formulation_names,
+        formulation_options,
+    )
     from ..problem import Problem, ProblemError, merged_data, merged_topology
     from ..reference import solve_reference
     from ..results import Status, status_message, status_name, usable
@@ -243,13 +250,16 @@ def cmd_solve(args: argparse.Namespace) -> int:
                 return fail(f"--warm-start: applies to --formulation {with_file} only")
             if info.rho == "one" and len(scales) != 1:
                 return fail("--rho-scale: the integrated problem has one objective; give one value")
+            # the formulation's own defaults (Local Explicit: eq.opt_ro's rho* and the
+            # exact finish) unless a flag says otherwise
+            extra: dict[str, Any] = {} if args.rho is None else {"rho_method": "given"}
+            if args.finish is not None:
+                if "finish" not in formulation_options(args.formulation):
+                    return fail(f"--finish: --formulation {args.formulation} has no exact finish")
+                extra["finish"] = args.finish
             try:
                 form = solver = formulation(
-                    args.formulation,
-                    T,
-                    max_iter=max_iter,
-                    anderson=anderson,
-                    rho_method="power" if args.rho is None else "given",
+                    args.formulation, T, max_iter=max_iter, anderson=anderson, **extra
                 )
             except ProblemError as e:  # the topology does not suit the formulation
                 return fail(f"{path}: {e}")
@@ -588,6 +598,9 @@ def add_solve_command(sub: Any) -> None:
         anderson="Anderson acceleration memory of the ADMM iteration; 0 is the paper's "
         "plain iteration (default: 0)",
         max_iter=f"iteration cap (default: {MAX_ITER_DEFAULT})",
+        finish="the exact finish of a decomposed formulation that has one (Local Explicit): "
+        "active_set (the ADMM iterate's active set solved exactly and KKT-checked) or none "
+        "(the paper's iteration alone) (default: active_set)",
     )
     add_params_flag(
         p,

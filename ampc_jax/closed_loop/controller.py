@@ -34,7 +34,9 @@ from ..formulations import (
     check_formulation,
     formulation,
     formulation_names,
+    formulation_options,
 )
+from ..formulations.local_explicit import PAPER_ITERATION
 from ..problem.data import ProblemData, make_data
 from ..problem.topology import Topology
 from ..results import usable
@@ -97,6 +99,10 @@ class Controller:
         (``info.closed_loop``; default ``"local_explicit"``,
         :func:`~ampc_jax.formulations.formulation_names`).
     max_iter, anderson : the solver's static options (defaults 200, 0).
+    finish : the solver's exact finish where the formulation has one
+        (``"none"``, default: the paper's iteration; ``"active_set"``:
+        :mod:`~ampc_jax.admm.finish`). rho_j is eq.opt_ro's at every step
+        either way (:data:`~ampc_jax.formulations.PAPER_ITERATION`).
     warm_start : start each step from the previous step's state (default True).
     warm_shift : 1 shifts that state one step along the horizon, 0 holds it.
     vehicle : the vehicle data the model uses.
@@ -122,6 +128,7 @@ class Controller:
     formulation: str = DEFAULT_FORMULATION
     max_iter: int = 200
     anderson: int = 0
+    finish: str = "none"
     warm_start: bool = True
     warm_shift: int = 1
     vehicle: VehicleParams = field(default_factory=VehicleParams)
@@ -191,8 +198,16 @@ class Controller:
 
     @property
     def _formulation(self) -> Formulation:
+        # the paper's iteration (eq.opt_ro at every step) with the finish asked for,
+        # where the formulation takes those options
+        opts = formulation_options(self.formulation)
+        extra = {k: v for k, v in {**PAPER_ITERATION, "finish": self.finish}.items() if k in opts}
         return formulation(
-            self.formulation, self.topology, max_iter=self.max_iter, anderson=self.anderson
+            self.formulation,
+            self.topology,
+            max_iter=self.max_iter,
+            anderson=self.anderson,
+            **extra,
         )
 
     @property
@@ -313,6 +328,7 @@ def controller_for(config: SimConfig) -> Controller | None:
         formulation=config.formulation,
         max_iter=config.max_iter,
         anderson=config.anderson,
+        finish=config.finish,
         warm_start=config.warm_start,
         warm_shift=config.warm_shift,
         vehicle=config.vehicle,

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 
 from ..admm.params import SolverParams
 from ..admm.state import ADMMState
-from ..formulations import IntegratedADMM
+from ..formulations import PAPER_ITERATION, IntegratedADMM
 from ..problem.data import ProblemData
 from ..problem.topology import Topology
 from ..results import usable
@@ -37,7 +37,10 @@ class IntegratedShadow:
     """The shadow integrated MPC of one controller topology (static).
 
     ``max_iter`` (default 5000) caps it; ``warm_shift`` builds its warm start
-    as the controller's does.
+    as the controller's does. It runs the paper's iteration
+    (:data:`~ampc_jax.formulations.PAPER_ITERATION`: no exact finish, eq.opt_ro
+    at every step) to its tolerance, the reference of the reproduction's e_sub
+    figures (docs/results.md).
     """
 
     topology: Topology
@@ -46,7 +49,7 @@ class IntegratedShadow:
 
     @property
     def solver(self) -> IntegratedADMM:
-        return IntegratedADMM(self.topology, max_iter=self.max_iter)
+        return IntegratedADMM(self.topology, max_iter=self.max_iter, **PAPER_ITERATION)
 
     def init(self, dtype: Any = None) -> ADMMState:
         return self.solver.cold_state(dtype)

@@ -15,7 +15,7 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
-from ..formulations import IntegratedADMM
+from ..formulations import PAPER_ITERATION, IntegratedADMM
 from ..results import usable
 from .compile import cores
 from .config import SimConfig
@@ -40,7 +40,10 @@ def _solvers(config: SimConfig, dtype: Any) -> tuple[Any, Any, IntegratedADMM, A
     le = ctrl.solver
     p_le = config.loop_params(dtype).controller.solver
     ia = IntegratedADMM(
-        ctrl.topology, max_iter=max(config.max_iter, 2000), anderson=config.anderson
+        ctrl.topology,
+        max_iter=max(config.max_iter, 2000),
+        anderson=config.anderson,
+        **{**PAPER_ITERATION, "finish": config.finish},
     )
     p_ia = ia.params(
         rho=config.integrated_rho_scale,
@@ -106,7 +109,8 @@ def replay_timing(
     busy with other processes the times still rise (``load`` records the load
     average at the start and the end, and the cores this process may use).
     Building the model and ``make_data`` are not timed (identical for both).
-    Both use ``config.relaxation``; Local Explicit scales eq.opt_ro's rho* by
+    Both use ``config.relaxation`` and ``config.finish`` (the paper's iteration
+    otherwise); Local Explicit scales eq.opt_ro's rho* by
     ``config.rho_scale`` (enabled objectives), IntegratedADMM by its own
     ``config.integrated_rho_scale``, each tuned by the same sweep
     (``docs/results.md``). Warm start: Local Explicit gets the warm state it

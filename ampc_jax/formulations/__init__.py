@@ -17,7 +17,7 @@ from ..admm.core import ADMMSolver, FormulationInfo
 from .consensus import ConsensusADMM, ConsensusSetup, ConsensusState
 from .fully_distributed import FullyDistributed
 from .integrated import IntegratedADMM
-from .local_explicit import LocalExplicit, LocalSetup
+from .local_explicit import PAPER_ITERATION, LocalExplicit, LocalSetup
 from .registry import (
     DEFAULT_FORMULATION,
     FORMULATIONS,
@@ -25,6 +25,7 @@ from .registry import (
     formulation,
     formulation_info,
     formulation_names,
+    formulation_options,
     register_formulation,
     unregister_formulation,
 )
@@ -44,12 +45,14 @@ __all__ = [
     "FullyDistributed",
     "IntegratedADMM",
     "LocalExplicit",
+    "PAPER_ITERATION",
     "LocalSetup",
     "VirtualCenter",
     "check_formulation",
     "formulation",
     "formulation_info",
     "formulation_names",
+    "formulation_options",
     "register_formulation",
     "unregister_formulation",
 ]

@@ -37,7 +37,9 @@ class IntegratedADMM(ADMMSolver):
     does on the merged topology (:attr:`merged`); the state, the step and the
     result are that Local Explicit's. ``params.rho`` has one entry (one
     objective): by default a factor on eq.opt_ro's rho* of the whole problem.
-    ``max_iter`` defaults to 2000.
+    ``max_iter`` defaults to 2000; ``rho_method`` (default ``"carried"``) and
+    ``finish`` (default ``"active_set"``, the exact finish; ``"none"``: ADMM
+    alone) as Local Explicit's.
     """
 
     info = FormulationInfo(
@@ -55,9 +57,10 @@ class IntegratedADMM(ADMMSolver):
     max_iter: int = 2000
     anderson: int = 0
     kkt: str = "auto"
-    rho_method: str = "power"
+    rho_method: str = "carried"
     rho_iterations: int = RHO_STEPS
     dual_residual: str = "slack"
+    finish: str = "active_set"
 
     def __post_init__(self) -> None:
         _ = self.merged  # validates the options
@@ -73,6 +76,7 @@ class IntegratedADMM(ADMMSolver):
             rho_method=self.rho_method,
             rho_iterations=self.rho_iterations,
             dual_residual=self.dual_residual,
+            finish=self.finish,
         )
 
     @property
@@ -83,6 +87,24 @@ class IntegratedADMM(ADMMSolver):
         """The merged problem's setup: ``data``'s objectives stacked into one, then
         :meth:`LocalExplicit.setup`."""
         return self.merged.setup(merged_data(data), params)
+
+    def setup_from(
+        self, data: ProblemData, params: SolverParams | None, warm: ADMMState | None
+    ) -> LocalSetup:
+        """:meth:`setup` with the rho* ``warm`` carries (``rho_method="carried"``)."""
+        return self.merged.setup_from(merged_data(data), params, warm)
+
+    @property
+    def finish_every(self) -> int:  # type: ignore[override]
+        return self.merged.finish_every
+
+    @property
+    def finish_first(self) -> int:  # type: ignore[override]
+        return self.merged.finish_first
+
+    def finisher(self, setup: LocalSetup) -> Any:
+        """The merged Local Explicit's exact finish (``finish``; None for ``"none"``)."""
+        return self.merged.finisher(setup)
 
     def init(self, setup: LocalSetup, warm: ADMMState | None = None) -> ADMMState:
         return self.merged.init(setup, warm)

@@ -39,8 +39,16 @@ Objective j carries the constraint rows whose agents all lie in S_j
 objectives, which is what makes their copies agree (paper-notes item 10).
 
 The default rho_j is eq.opt_ro (:mod:`ampc_jax.admm.rho`), its extreme
-eigenvalues estimated by power iteration (``rho_method="eigh"`` for the exact
-form), times the factor ``params.rho`` (1: the paper's rho*).
+eigenvalues estimated by Lanczos steps at a cold start and carried along a
+warm-started drive (``rho_method``; ``"eigh"`` for the exact form), times the
+factor ``params.rho`` (1: the paper's rho*).
+
+By default a solve ends with an exact finish (``finish="active_set"``,
+:mod:`ampc_jax.admm.finish`): once the slack's active set settles, the
+problem the iteration converges to is solved with those rows as equalities
+and KKT-checked, and a verified finish is the result. ``finish="none"`` is the
+paper's iteration alone (the closed-loop reproduction's default,
+``docs/results.md``).
 
 Implementation: the objectives are stacked on a leading axis and padded to
 common sizes (:mod:`ampc_jax.admm.layout`), so every per-objective operation
@@ -87,7 +95,7 @@ from ..problem.topology import Topology
 from ..results import SolveResult, SolveStats, Status
 from ..validation import check_count
 
-__all__ = ["DUAL_RESIDUALS", "RHO_METHODS", "LocalExplicit", "LocalSetup"]
+__all__ = ["DUAL_RESIDUALS", "PAPER_ITERATION", "RHO_METHODS", "LocalExplicit", "LocalSetup"]
 
 RHO_METHODS = ("power", "eigh", "given", "carried")
 """How rho_j is found: eq.opt_ro by Lanczos steps or exactly, or carried by the
@@ -95,6 +103,14 @@ warm start from the previous step (times ``params.rho``), or ``params.rho`` itse
 
 DUAL_RESIDUALS = ("slack", "paper")
 """Forms of the dual stopping test (see :class:`LocalExplicit`)."""
+
+PAPER_ITERATION: dict[str, str] = {"finish": "none", "rho_method": "power"}
+"""The options of the paper's iteration (eq.opt_ro estimated at every solve, no
+exact finish) over :class:`LocalExplicit`'s defaults: what the closed-loop
+reproduction's controller, shadow and timing replay run (their figures are the
+paper's iteration's, docs/results.md) and what the tuning measures and trains
+on (it tunes the iteration itself: a finished iterate is no fixed point of the
+map, :mod:`~ampc_jax.admm.implicit`)."""
 
 
 class LocalSetup(NamedTuple):
@@ -177,18 +193,22 @@ class LocalExplicit(ADMMSolver):
         ``"auto"`` (default), ``"dense"``, ``"woodbury"``, ``"woodbury_factored"``,
         ``"riccati"`` (:func:`~ampc_jax.admm.kkt.select_kkt`; each wins at some
         size there).
-    rho_method : ``"power"`` (default): rho_j = ``params.rho[j]`` times eq.opt_ro's
-        rho_j*, its extreme eigenvalues by ``rho_iterations`` Lanczos steps on
-        the pencil (within 10 % of the exact value on the tested problems);
-        ``"eigh"``: the same with the exact eigendecomposition (the reference
-        the estimate is tested against; several times slower on XLA:CPU);
-        ``"given"``: rho_j = ``params.rho[j]`` (no eq.opt_ro; for an objective
-        whose H_j is singular, where eq.opt_ro is undefined); ``"carried"``:
-        as ``"power"``, but the rho_j* the warm start carries (the previous
-        step's, ``ADMMState.rho_star``) is used as it is, so a drive estimates
-        it only at its cold start and where a solve asked for a new estimate
-        (``rho_refresh``). Objectives with column-rank-deficient rows always
-        use the exact form.
+    rho_method : ``"carried"`` (default): rho_j = ``params.rho[j]`` times eq.opt_ro's
+        rho_j*, the rho_j* the warm start carries (the previous step's,
+        ``ADMMState.rho_star``) where it carries one, else estimated as
+        ``"power"`` does; so a drive estimates it only at its cold start and
+        where a solve asked for a new estimate (``rho_refresh``), and a cold
+        solve is ``"power"``'s. ``"power"``: rho_j* estimated at every solve, its
+        extreme eigenvalues by ``rho_iterations`` Lanczos steps on the pencil
+        (within 10 % of the exact value on the tested problems); ``"eigh"``: the
+        same with the exact eigendecomposition (the reference the estimate is
+        tested against; several times slower on XLA:CPU); ``"given"``: rho_j =
+        ``params.rho[j]`` (no eq.opt_ro; for an objective whose H_j is singular,
+        where eq.opt_ro is undefined). Objectives with column-rank-deficient
+        rows always use the exact form. Rule: ``"carried"``; reason: along
+        bench/bench_peers.py's drives the held rho_j* gave the same iterations
+        and error with the setup's Lanczos steps gone (the step 0.53x against
+        0.61x of the plain iteration's time with the finish, docs/bench_peers.md).
     rho_refresh : with ``rho_method="carried"``, a solve that did not converge
         or took more than this many iterations passes no rho_j* on (its
         state's ``rho_star`` is 0), so the next step estimates anew (default
@@ -202,8 +222,9 @@ class LocalExplicit(ADMMSolver):
         gives rho_j ~ 1e-6 when the weights are per Nm^2 (vehicle examples): a
         fixed eps_s is then met while Z still moves by newtons.
         ``SolveResult.dual_residual`` reports the tested quantity.
-    finish : ``"none"`` (default, the paper's iteration) or ``"active_set"``:
-        on the start's slack active set (rows with Z_c = 0; a warm start's,
+    finish : ``"active_set"`` (default) or ``"none"`` (the paper's iteration,
+        what the closed-loop reproduction runs: ``docs/results.md``):
+        ``"active_set"``: on the start's slack active set (rows with Z_c = 0; a warm start's,
         after ``finish_first`` iterations) and then every ``finish_every``
         iterations where that set did not change in the last iteration, solve
         the integrated problem with those rows as equalities exactly and check
@@ -213,8 +234,18 @@ class LocalExplicit(ADMMSolver):
         reports its own residuals: ``primal_residual`` the rows' violation
         squared (objective j's rows), ``dual_residual`` 0 (stationarity holds
         exactly); the solve stops when they pass eq.Convergence. A rejected
-        finish leaves the iterate as it was. Not for differentiation
-        (:meth:`solve_fixed` with a finish is forward only).
+        finish leaves the iterate as it was. Forward only: the differentiable
+        runners never finish (:meth:`solve_fixed` runs its fixed count of plain
+        iterations; :func:`~ampc_jax.admm.implicit.solve_implicit` iterates
+        plainly to tolerance and differentiates that fixed point). Rule:
+        ``"active_set"``; reason: DAQP's accuracy at any tolerance and fewer
+        iterations (bench/bench_peers.py's drives: worst error 5.9e-3 ->
+        3.1e-6 Nm, warm iterations 33.4 -> 0; bench/bench_sweep.py's 1,000
+        cold cruise_step cases x 4 rho: 122.6 -> 25.9 iterations, LE / DAQP
+        0.10 -> 0.26; docs/bench_peers.md, docs/bench_sweep.md). Where it
+        costs: a single step at N_p = 2 or 3 with a few warm iterations, where
+        one finish takes longer than they do (the closed loop's cruise step
+        396 -> 816 us; docs/results.md, "The exact finish in closed loop").
     finish_every : iterations between finish attempts (default 8,
         :data:`~ampc_jax.admm.finish.FINISH_EVERY`).
     finish_first : iterations before the first attempt (default 0: the start's
@@ -245,11 +276,11 @@ class LocalExplicit(ADMMSolver):
     max_iter: int = 500
     anderson: int = 0
     kkt: str = "auto"
-    rho_method: str = "power"
+    rho_method: str = "carried"
     rho_iterations: int = RHO_STEPS
     dual_residual: str = "slack"
     rho_refresh: int = 100
-    finish: str = "none"
+    finish: str = "active_set"
     finish_every: int = FINISH_EVERY
     finish_first: int = 0
     finish_corrections: int = FINISH_CORRECTIONS

@@ -28,6 +28,7 @@ __all__ = [
     "formulation",
     "formulation_info",
     "formulation_names",
+    "formulation_options",
     "register_formulation",
     "unregister_formulation",
 ]
@@ -110,6 +111,16 @@ def check_formulation(name: Any, *, field: str = "formulation", **traits: Any) -
     if not isinstance(name, str) or name not in names:
         raise ValueError(f"{field}: expected one of {list(names)}, got {name!r}")
     return _CLASSES[name].info
+
+
+def formulation_options(name: str) -> tuple[str, ...]:
+    """The static options the formulation ``name`` takes (its dataclass fields but
+    ``topology``; ValueError naming ``formulation`` for an unknown name): what a
+    caller may pass to :func:`formulation` for it (``"finish"`` only where it has
+    an exact finish)."""
+    check_formulation(name)
+    fields = getattr(_CLASSES[name], "__dataclass_fields__", {})
+    return tuple(f for f in fields if f != "topology")
 
 
 def formulation(name: str, topology: Topology, **options: Any) -> ADMMSolver:

@@ -19,6 +19,10 @@ ADMM iterations run in *segments* of ``segment`` iterations.
   one ``lax.switch`` branch per bucket, so the program is compiled once and a
   sweep's wall time tracks the typical pair, not the worst. :class:`Work`
   counts the pair-iterations computed and needed, for both runners.
+* **Continuous batching** (``refill``, the default). Instead of compacting a
+  chunk of pairs down to its slowest, ``chunk`` slots iterate in segments and
+  a slot whose pair stopped takes the next waiting pair, so the waste is only
+  the last segment's idle slots and each segment's rounding.
 
 Under :func:`sweep_solve` with several devices, the pair axis is split over
 them with ``jax.shard_map`` (each device compacts its own share); with
@@ -142,7 +146,7 @@ def solve_pairs(
     segment: int = 16,
     min_bucket: int = 16,
     chunk: int | None = CHUNK,
-    refill: bool = False,
+    refill: bool = True,
 ) -> tuple[PairResult, Work]:
     """Solve B pairs (leading axis of ``data`` and ``params``) on one device, to tolerance.
 
@@ -153,9 +157,14 @@ def solve_pairs(
     The setups (no loop) run over all B pairs at once; the iterations run on
     consecutive chunks of ``chunk`` pairs (:data:`CHUNK`; None: all B at once),
     one after the other under ``lax.map``, each compacted on its own.
-    ``refill`` True runs ``chunk`` slots (continuous batching): after each segment
-    a pair that has stopped hands its slot to the next waiting pair, so a slot
-    never idles while pairs wait (:func:`_iterate_refill`).
+    ``refill`` True (default, with ``compaction``) runs ``chunk`` slots (continuous
+    batching): after each segment a pair that has stopped hands its slot to the
+    next waiting pair, so a slot never idles while pairs wait
+    (:func:`_iterate_refill`; with no more pairs than slots, compaction instead:
+    no pair waits); False compacts each chunk on its own. Rule:
+    refill; reason: on bench/bench_sweep.py's 800 cold ``cruise_step`` pairs with
+    the exact finish, waste 1.21 -> 1.16 and the pair rate 1.19x
+    (docs/bench_sweep.md).
     Returns the per-pair :class:`PairResult` and the :class:`Work` done. Jittable.
     """
     solver = _check_solver(solver)
@@ -163,8 +172,12 @@ def solve_pairs(
     states = jax.vmap(solver.init)(setups)
     if chunk is not None and (isinstance(chunk, bool) or int(chunk) < 1):
         raise ValueError(f"chunk: expected an integer >= 1 or None, got {chunk!r}")
-    if refill:
-        slots = CHUNK if chunk is None else int(chunk)
+    slots = CHUNK if chunk is None else int(chunk)
+    B = int(np.shape(jax.tree.leaves(states)[0])[0])
+    # continuous batching pays while pairs wait for a slot; with no more pairs than
+    # slots every slot would idle until the slowest pair stops (vmap's work), which
+    # compaction avoids
+    if compaction and refill and B > slots:
         finals, work = _iterate_refill(solver, setups, states, segment, slots)
     else:
         finals, work = _iterate(solver, setups, states, compaction, segment, min_bucket, chunk)
@@ -225,9 +238,10 @@ def _parts_of(solver: ADMMSolver) -> tuple[Any, Any, Any]:
         return carry[0] if solver.anderson else carry
 
     def carry_of(setup: Any, st: Any) -> Any:
-        return loop_parts(
+        carry, body, _ = loop_parts(
             lambda s: solver.step(setup, s), st, solver.anderson, solver.point, solver.at
-        )[0]
+        )
+        return _first_attempt(solver, setup, body, iterate_of, lambda c: running(setup, c), carry)
 
     def running(setup: Any, carry: Any) -> Any:
         return still_running(
@@ -242,14 +256,8 @@ def _parts_of(solver: ADMMSolver) -> tuple[Any, Any, Any]:
             solver.point,
             solver.at,
         )
-        return run_segment(
-            body,
-            iterate_of,
-            lambda c: running(setup, c),
-            carry,
-            length,
-            finish=solver.finisher(setup),
-            anderson=solver.anderson,
+        return _run_segment(
+            solver, setup, body, iterate_of, lambda c: running(setup, c), carry, length
         )
 
     return carry_of, segment_of, running
@@ -266,7 +274,7 @@ def _iterate_refill(
     segment per segment, idle only once no pair waits."""
     B = int(np.shape(jax.tree.leaves(states)[0])[0])
     C = max(1, min(int(slots), B))
-    seg = check_segment(segment)
+    seg = _segment_length(solver, segment)
     carry_of, segment_of, running = _parts_of(solver)
     iterate_of = (lambda c: c[0]) if solver.anderson else (lambda c: c)
     carries = jax.vmap(carry_of)(setups, states)  # every pair's start, read when loaded
@@ -311,6 +319,55 @@ def check_segment(segment: Any) -> int:
     return int(segment)
 
 
+def _segment_length(solver: ADMMSolver, segment: Any) -> int:
+    """The engine's segment: ``segment`` iterations, rounded up to a multiple of the
+    solver's ``finish_every`` where it has an exact finish, so that its finish
+    attempts fall on the iterations :meth:`~ampc_jax.admm.core.ADMMSolver.run` tries
+    them at (each pair's result and count are those of its own solve)."""
+    seg = check_segment(segment)
+    if type(solver).finisher is ADMMSolver.finisher:  # no finish: any length
+        return seg
+    every = int(solver.finish_every)
+    return every * -(-seg // every)
+
+
+def _run_segment(
+    solver: ADMMSolver,
+    setup: Any,
+    body: Any,
+    iterate_of: Any,
+    running: Any,
+    carry: Any,
+    length: int,
+) -> Any:
+    """``length`` iterations of one pair (:func:`~ampc_jax.admm.runners.run_segment`);
+    with the solver's exact finish, in pieces of ``finish_every`` iterations, each
+    ended by a finish attempt, as :meth:`~ampc_jax.admm.core.ADMMSolver.run` does."""
+    fin = solver.finisher(setup)
+    if fin is None:
+        return run_segment(body, iterate_of, running, carry, length, anderson=solver.anderson)
+    every = int(solver.finish_every)
+    for _ in range(length // every):
+        carry = run_segment(
+            body, iterate_of, running, carry, every, finish=fin, anderson=solver.anderson
+        )
+    return carry
+
+
+def _first_attempt(
+    solver: ADMMSolver, setup: Any, body: Any, iterate_of: Any, running: Any, carry: Any
+) -> Any:
+    """The start of one pair: with an exact finish, its ``finish_first`` iterations
+    and first attempt (0: the start's own active set), as ``run`` begins."""
+    fin = solver.finisher(setup)
+    if fin is None:
+        return carry
+    first = int(solver.finish_first)
+    return run_segment(
+        body, iterate_of, running, carry, first, finish=fin, anderson=solver.anderson
+    )
+
+
 def _iterate_all(
     solver: ADMMSolver,
     setups: Any,
@@ -340,21 +397,22 @@ def _iterate_all(
         it = finals.iteration
         work = Work(B * jnp.max(it), jnp.sum(it))
     else:
-        seg = check_count(segment, "segment")
+        check_count(segment, "segment")
+        seg = _segment_length(solver, segment)
 
         def segment_of(setup: Any, carry: Any) -> Any:
             _, body, _ = parts(setup, iterate_of(carry))
-            return run_segment(
-                body,
-                iterate_of,
-                lambda c: running(setup, c),
-                carry,
-                seg,
-                finish=solver.finisher(setup),
-                anderson=solver.anderson,
+            return _run_segment(
+                solver, setup, body, iterate_of, lambda c: running(setup, c), carry, seg
             )
 
-        carry0 = jax.vmap(lambda s, st: parts(s, st)[0])(setups, states)
+        def start_of(setup: Any, st: Any) -> Any:
+            carry, body, _ = parts(setup, st)
+            return _first_attempt(
+                solver, setup, body, iterate_of, lambda c: running(setup, c), carry
+            )
+
+        carry0 = jax.vmap(start_of)(setups, states)
         sizes = bucket_sizes(B, min_bucket)
         ladder = jnp.asarray(sizes)
 
@@ -429,7 +487,7 @@ def sweep_solve(
     segment: int = 16,
     min_bucket: int = 16,
     chunk: int | None = CHUNK,
-    refill: bool = False,
+    refill: bool = True,
 ) -> tuple[PairResult, Work]:
     """:func:`solve_pairs` with the pair axis split over ``devices`` (default: all of
     ``jax.devices()``, every process's), by ``jax.shard_map``.
@@ -461,7 +519,7 @@ def _program(
     segment: int,
     min_bucket: int,
     chunk: int | None = CHUNK,
-    refill: bool = False,
+    refill: bool = True,
 ) -> tuple[Any, jax.sharding.Mesh]:
     """The jitted, sharded sweep program for one static configuration (compiled
     once per pair count and dtype, then reused by every chunk)."""

@@ -141,7 +141,8 @@ class SweepSpec:
     horizon : N_p of a vehicle or generated family (default: the family's own).
     chunk : cases per chunk (default 256); the memory bound and the resume grain.
     float32 : solve in float32 (default float64).
-    compaction : re-batch the pairs still running between segments (default True).
+    compaction : re-batch the pairs still running between segments, by continuous
+        batching (default True; :func:`~ampc_jax.sweep.engine.sweep_solve`).
     duration : simulated seconds of a closed-loop family's runs (default: the scenario's).
     groups : agent groups of a vehicle step family: ``"paper"`` (default, the
         example's own) or ``"full"`` (every agent in every group: the exact

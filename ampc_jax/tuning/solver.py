@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..admm.params import SolverParams
-from ..formulations import formulation
+from ..formulations import PAPER_ITERATION, formulation
 from ..problem.data import ProblemData
 from ..problem.topology import Topology
 from ..reference import reference_inputs as batch_reference
@@ -329,7 +329,9 @@ def tune_solver(
     train = fam.sample(int(cases), seed=int(seed), **opts)
     T = train.topology
     dt = jax.tree.leaves(train.data)[0].dtype
-    solver = formulation("local_explicit", T, anderson=int(anderson), max_iter=int(max_iter))
+    solver = formulation(
+        "local_explicit", T, anderson=int(anderson), max_iter=int(max_iter), **PAPER_ITERATION
+    )
     u_star = jnp.asarray(reference_inputs(T, train.data), dt)
     s = float(T.horizon * T.n_u) if scale is None else float(scale)
     theta = theta_of(init_rho_scale, init_relaxation, T.n_objectives, dt)
@@ -392,13 +394,19 @@ def tune_solver(
                 solver
                 if held.topology == T
                 else formulation(
-                    "local_explicit", held.topology, anderson=int(anderson), max_iter=int(max_iter)
+                    "local_explicit",
+                    held.topology,
+                    anderson=int(anderson),
+                    max_iter=int(max_iter),
+                    **PAPER_ITERATION,
                 )
             )
             us = reference_inputs(held.topology, held.data)
             ev = evaluate_points(sv, held.data, us, points, tol=tol)
             if anderson:
-                plain = formulation("local_explicit", held.topology, max_iter=int(max_iter))
+                plain = formulation(
+                    "local_explicit", held.topology, max_iter=int(max_iter), **PAPER_ITERATION
+                )
                 extra = evaluate_points(
                     plain,
                     held.data,

@@ -56,6 +56,7 @@ def evaluate_starts(
     *,
     max_iter: int = 500,
     extra: dict[str, tuple[Any, float, int]] | None = None,
+    finish: str = "none",
 ) -> dict[str, Any]:
     """Iterations to tolerance on the step cases ``held`` from three starts.
 
@@ -67,11 +68,15 @@ def evaluate_starts(
     relaxation, anderson) from a cold start (a rho-tuned point). Returns
     ``{"cases", "tol", "rows": [{name, median, p95, max, converged, u0_error,
     u0_rel_error}]}``; ``u0_error`` is the worst ||u0 - u0*|| against Clarabel.
+    ``finish``: every contender's exact finish (default ``"none"``, the paper's
+    iteration the start is trained on; ``"active_set"``: the iterations to a
+    verified finish, :mod:`~ampc_jax.admm.finish`).
     """
-    from ..formulations import formulation
+    from ..formulations import PAPER_ITERATION, formulation
     from .solver import reference_inputs
 
     T = held.topology
+    iteration = {**PAPER_ITERATION, "finish": finish}
     J = T.n_objectives
     dt = jax.tree.leaves(held.data)[0].dtype
     n = int(jax.tree.leaves(held.data)[0].shape[0])
@@ -79,20 +84,30 @@ def evaluate_starts(
     u0_star = reference_inputs(T, held.data)[:, 0, :]
     cmd = (tuned_for["rho_scale"], float(tuned_for["relaxation"]), int(tuned_for["anderson"]))
     contenders: list[tuple[str, Any, Any, float]] = [
-        ("eq.opt_ro, cold", formulation("local_explicit", T, max_iter=max_iter), 1.0, 1.0),
+        (
+            "eq.opt_ro, cold",
+            formulation("local_explicit", T, max_iter=max_iter, **iteration),
+            1.0,
+            1.0,
+        ),
         (
             "command, cold",
-            formulation("local_explicit", T, max_iter=max_iter, anderson=cmd[2]),
+            formulation("local_explicit", T, max_iter=max_iter, anderson=cmd[2], **iteration),
             cmd[0],
             cmd[1],
         ),
     ]
     for name, (rs, alpha, aa) in (extra or {}).items():
         contenders.append(
-            (name, formulation("local_explicit", T, max_iter=max_iter, anderson=aa), rs, alpha)
+            (
+                name,
+                formulation("local_explicit", T, max_iter=max_iter, anderson=aa, **iteration),
+                rs,
+                alpha,
+            )
         )
     if model is not None:
-        inner = formulation("local_explicit", T, max_iter=max_iter, anderson=cmd[2])
+        inner = formulation("local_explicit", T, max_iter=max_iter, anderson=cmd[2], **iteration)
         contenders.append(("learned start", LearnedStart(inner, model), cmd[0], cmd[1]))
     rows = [
         point_row(

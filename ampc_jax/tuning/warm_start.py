@@ -260,7 +260,7 @@ def _training_set(
     (:data:`TARGET_TOL`), from the same start a solve has; pairs that did not
     reach theirs are dropped (ValueError when more than half)."""
     from ..closed_loop.controller import controller_for
-    from ..formulations import formulation
+    from ..formulations import PAPER_ITERATION, formulation
 
     kind = "loop" if fam.kind == "loop" else "step"
     if kind == "loop":
@@ -278,10 +278,14 @@ def _training_set(
         tol = float(cfg.tol_primal) if cfg is not None else 1e-6
     J = T.n_objectives
     rho = np.broadcast_to(np.asarray(st["rho_scale"], float), (J,))
-    inner = formulation("local_explicit", T, anderson=st["anderson"], max_iter=int(max_iter))
+    inner = formulation(
+        "local_explicit", T, anderson=st["anderson"], max_iter=int(max_iter), **PAPER_ITERATION
+    )
     n = int(jax.tree.leaves(data)[0].shape[0])
     tight = batch_params(n, J, rho, st["relaxation"], TARGET_TOL, dt)
-    deep = formulation("local_explicit", T, anderson=st["anderson"], max_iter=20 * int(max_iter))
+    deep = formulation(
+        "local_explicit", T, anderson=st["anderson"], max_iter=20 * int(max_iter), **PAPER_ITERATION
+    )
     if kind == "loop":
         res = jax.jit(jax.vmap(deep.solve))(data, tight, prev)
         u_star, fx, conv = np.asarray(res.u), res.state, np.asarray(res.converged)

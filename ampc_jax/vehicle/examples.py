@@ -43,7 +43,9 @@ class VehicleExample:
     states : names of the prediction model's state X.
     settings_type : the :class:`ExampleSettings` subclass of its settings.
     solver_defaults : tuned defaults of the closed loop's solver options
-        (``SimConfig`` fields; ``docs/results.md``, "Solver tuning"), and
+        (``SimConfig`` fields; ``docs/results.md``, "Solver tuning"; an option
+        left out is the paper's iteration's: no relaxation, acceleration or
+        exact finish, eq.opt_ro's rho* unscaled), and
         ``consensus_rho_scale``, the rho factor of Formulations 1 and 2 when
         ``rho_scale`` is not given (default 1.0 when absent).
     no_mpc_label : what drives the vehicle without the MPC (``--formulation none``).

@@ -23,8 +23,8 @@ def _problem():
 
 def test_carried_rho_same_optimum_and_no_new_estimate():
     T, d, d2 = _problem()
-    power = LocalExplicit(T, max_iter=5000)
-    carried = LocalExplicit(T, max_iter=5000, rho_method="carried", rho_refresh=5000)
+    power = LocalExplicit(T, max_iter=5000, rho_method="power", finish="none")
+    carried = LocalExplicit(T, max_iter=5000, rho_method="carried", rho_refresh=5000, finish="none")
     q = power.params(rho=(1.0, 0.3), tol_primal=1e-12, tol_dual=1e-12)
     r0p = jax.jit(power.solve)(d, q)
     r0c = jax.jit(carried.solve)(d, q)
@@ -40,8 +40,8 @@ def test_carried_rho_same_optimum_and_no_new_estimate():
     assert int(r1c.status) == Status.SOLVED and int(r1p.status) == Status.SOLVED
     np.testing.assert_allclose(np.asarray(r1c.u), np.asarray(r1p.u), atol=1e-3)
     # with the exact finish both are the optimum itself
-    fin_p = LocalExplicit(T, max_iter=5000, finish="active_set")
-    fin_c = LocalExplicit(T, max_iter=5000, finish="active_set", rho_method="carried")
+    fin_p = LocalExplicit(T, max_iter=5000, finish="active_set", rho_method="power")
+    fin_c = LocalExplicit(T, max_iter=5000)  # the defaults: the finish, the carried rho*
     f1p = jax.jit(fin_p.solve)(d2, q, fin_p.shift(r0p.state))
     f1c = jax.jit(fin_c.solve)(d2, q, fin_c.shift(r0c.state))
     assert np.all(np.asarray(f1c.dual_residual) == 0)  # a verified finish
@@ -53,7 +53,7 @@ def test_carried_rho_batched_decision_and_refresh():
     does), a case that carries one keeps it; a slow solve passes none on."""
     T, d, d2 = _problem()
     carried = LocalExplicit(T, max_iter=5000, rho_method="carried")
-    power = LocalExplicit(T, max_iter=5000)
+    power = LocalExplicit(T, max_iter=5000, rho_method="power")
     q = carried.params(tol_primal=1e-10, tol_dual=1e-10)
     cold = carried.cold_state()
     warm = cold._replace(rho_star=jnp.asarray([2.0, 3.0]))
@@ -63,7 +63,7 @@ def test_carried_rho_batched_decision_and_refresh():
     est = np.asarray(jax.jit(power.solve)(d2, q).rho)
     np.testing.assert_allclose(np.asarray(res.rho[0]), est, rtol=1e-12)
     np.testing.assert_allclose(np.asarray(res.rho[1]), [2.0, 3.0], rtol=1e-12)
-    slow = LocalExplicit(T, max_iter=5000, rho_method="carried", rho_refresh=1)
+    slow = LocalExplicit(T, max_iter=5000, rho_method="carried", rho_refresh=1, finish="none")
     r = jax.jit(slow.solve)(d2, q)
     assert int(r.iterations) > 1 and np.all(np.asarray(r.state.rho_star) == 0)
 
@@ -86,3 +86,11 @@ def test_carried_rho_differentiates():
     np.testing.assert_allclose(np.asarray(g_c), np.asarray(g_g), rtol=1e-8, atol=1e-12)
     g_cold = jax.grad(lambda x: loss(carried, x, q, None))(d.x0)  # estimated: its own derivative
     assert np.all(np.isfinite(np.asarray(g_cold)))
+
+
+def test_defaults_are_the_finish_and_the_carried_rho():
+    """The library's defaults: the exact finish and the carried rho* (what bench_peers'
+    drives and bench_sweep's sweeps measured paying, docs/bench_peers.md)."""
+    T, _, _ = _problem()
+    s = LocalExplicit(T)
+    assert (s.finish, s.rho_method) == ("active_set", "carried")

@@ -38,7 +38,10 @@ def case(kind: str, anderson: int):
     p = random_problem(1, 2, shared="all", horizon=4)
     d = p.data()
     cls = {"local_explicit": LocalExplicit, "fully_distributed": FullyDistributed}[kind]
-    solver = cls(p.topology, max_iter=20000, anderson=anderson)
+    # the ordinary solve without Local Explicit's exact finish: the program
+    # solve_implicit runs forward (the finish is forward only)
+    plain = {"finish": "none"} if kind == "local_explicit" else {}
+    solver = cls(p.topology, max_iter=20000, anderson=anderson, **plain)
     w = jnp.asarray(np.random.default_rng(0).standard_normal(d.lb.shape))
 
     def inputs(theta):
@@ -121,6 +124,30 @@ def test_forward_value_is_the_ordinary_solve(anderson):
     assert abs(int(res.iterations) - int(ref.iterations[0])) <= 1
     np.testing.assert_allclose(res.u, ref.u[0], rtol=0, atol=1e-12)
     np.testing.assert_allclose(value, jnp.sum(w * ref.u[0]), rtol=1e-12)
+
+
+def test_the_finish_is_forward_only():
+    """A solver with the exact finish (the default) differentiates as its plain
+    iteration: solve_implicit runs no finish, so its result and gradient are those
+    of finish="none", and the finished solve reaches the same inputs."""
+    solver, inputs, grad, _, _, _ = case("local_explicit", 0)
+    data, params = inputs(THETA)
+    fin = LocalExplicit(solver.topology, max_iter=20000)
+    assert fin.finish == "active_set"
+    imp = jax.jit(lambda d, p: solve_implicit(fin, d, p))(data, params)
+    ref = jax.jit(lambda d, p: solve_implicit(solver, d, p))(data, params)
+    np.testing.assert_array_equal(imp.u, ref.u)
+    assert int(imp.iterations) == int(ref.iterations)
+    done = jax.jit(fin.solve)(data, params)
+    np.testing.assert_allclose(done.u, ref.u, rtol=0, atol=1e-8)
+    w = jnp.asarray(np.random.default_rng(1).standard_normal(data.lb.shape))
+
+    def loss(s, R):
+        return jnp.sum(w * solve_implicit(s, data._replace(R=R), params).u)
+
+    g_fin = jax.jit(jax.grad(lambda R: loss(fin, R)))(data.R)
+    g_ref = jax.jit(jax.grad(lambda R: loss(solver, R)))(data.R)
+    np.testing.assert_array_equal(np.asarray(g_fin), np.asarray(g_ref))
 
 
 @pytest.mark.slow  # depends on Anderson's behaviour at round-off: a demonstration, not a rule

@@ -14,7 +14,7 @@ from ampc_jax.admm.learned_start import (
     box_coordinates,
     n_features,
 )
-from ampc_jax.formulations import formulation
+from ampc_jax.formulations import PAPER_ITERATION, formulation
 from ampc_jax.sweep import family
 from ampc_jax.tuning.solver import reference_inputs
 
@@ -24,7 +24,9 @@ jax.config.update("jax_enable_x64", True)
 @pytest.fixture(scope="module")
 def cases():
     c = family("cruise_step").sample(3, seed=5, groups="full", dtype=jnp.float64)
-    inner = formulation("local_explicit", c.topology, anderson=3, max_iter=2000)
+    inner = formulation(
+        "local_explicit", c.topology, anderson=3, max_iter=2000, **PAPER_ITERATION
+    )  # the iteration the start is trained on
     return c, inner
 
 
@@ -106,7 +108,7 @@ def test_learned_start_reaches_the_formulations_own_solution(cases, schedule):
 @pytest.mark.timeout(180)
 def test_a_start_at_the_optimum_is_a_fixed_point(cases):
     c, _ = cases
-    inner = formulation("local_explicit", c.topology, max_iter=20000)
+    inner = formulation("local_explicit", c.topology, max_iter=20000, **PAPER_ITERATION)
     d = _case(c, 2)
     deep = inner.params(tol_primal=1e-22, tol_dual=1e-22)
     u_star = jax.jit(inner.solve)(d, deep).u

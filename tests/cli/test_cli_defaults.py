@@ -89,6 +89,7 @@ def test_simulate_names_the_examples_defaults_in_its_header(tmp_path, capsys):
     assert out.splitlines()[0] == (
         f"ampc simulate: stability_dlc, local_explicit, VSC (WSC disabled), rho scale "
         f"{d['rho_scale'][0]:g}, relaxation {d['relaxation']:g}, Anderson {d['anderson']}, "
+        f"finish {d['finish']}, "
         f"float32; settings q_vsc=8 (default {q_default:g}) (the stability example's solver "
         f"defaults where no flag or --params gave one)"
     )

@@ -45,7 +45,19 @@ def base():
     return json.loads(out.getvalue())
 
 
-def test_solve_json_contract_and_rho_scale(capsys, base):
+@pytest.fixture(scope="module")
+def plain():
+    """The same by the paper's iteration alone (--finish none)."""
+    import contextlib
+    import io
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        assert main(["solve", "cruise_control", "--json", "--tol", "1e-8", "--finish", "none"]) == 0
+    return json.loads(out.getvalue())
+
+
+def test_solve_json_contract_and_rho_scale(capsys, base, plain):
     for key in (
         "formulation",
         "u0",
@@ -70,8 +82,9 @@ def test_solve_json_contract_and_rho_scale(capsys, base):
     # same optimum either way (rho and relaxation only change the path)
     for agent, u0 in base["u0"].items():
         np.testing.assert_allclose(scaled["u0"][agent], u0, atol=5e-2)
-    accelerated = run_json(capsys, "--tol", "1e-8", "--anderson", "3")
-    assert accelerated["converged"] and accelerated["iterations"] < base["iterations"]
+    # Anderson shortens the iteration itself (the finish would end both early)
+    accelerated = run_json(capsys, "--tol", "1e-8", "--anderson", "3", "--finish", "none")
+    assert accelerated["converged"] and accelerated["iterations"] < plain["iterations"]
     for agent, u0 in base["u0"].items():
         np.testing.assert_allclose(accelerated["u0"][agent], u0, atol=5e-2)
 
@@ -122,7 +135,7 @@ def test_warm_start_file_round_trip(capsys, tmp_path, base):
     opt = np.concatenate([cold["u0"][a] for a in agents])
 
     def one_iteration(*extra):
-        r = run_json(capsys, "--tol", "1e-8", "--max-iter", "1", *extra)
+        r = run_json(capsys, "--tol", "1e-8", "--max-iter", "1", "--finish", "none", *extra)
         assert r["iterations"] == 1
         return np.max(np.abs(np.concatenate([r["u0"][a] for a in agents]) - opt))
 
@@ -204,7 +217,9 @@ def test_solver_defaults_to_clarabel_for_integrated(capsys):
 
 
 def test_given_rho_and_iteration_cap(capsys):
-    code = main(["solve", "cruise_control", "--json", "--rho", "3.5", "--max-iter", "3"])
+    # the iteration alone: the cap is the iteration's (a finish may end it sooner)
+    args = ["--rho", "3.5", "--max-iter", "3", "--finish", "none"]
+    code = main(["solve", "cruise_control", "--json", *args])
     captured = capsys.readouterr()
     assert code == 0, captured.err
     out = json.loads(captured.out)
@@ -272,9 +287,10 @@ def test_an_early_stop_on_a_feasible_problem_prints_its_inputs(capsys, tmp_path)
     row = _problem_file(
         tmp_path, "row.json", constraints=[{"A": {"a": [[1.0]], "b": [[1.0]]}, "b": [0.3]}]
     )
-    done = run_json_file(capsys, row, "--tol", "1e-3")
+    plain = ("--tol", "1e-3", "--finish", "none")  # the iteration's own stop
+    done = run_json_file(capsys, row, *plain)
     assert done["status"] == "solved"
-    early = main(["solve", row, "--tol", "1e-3", "--max-iter", str(done["iterations"] - 1)])
+    early = main(["solve", row, *plain, "--max-iter", str(done["iterations"] - 1)])
     out = capsys.readouterr()
     assert early == 0 and "may be infeasible" not in out.err
 
@@ -458,6 +474,7 @@ def test_tol_rel_stops_within_the_stated_error_bound(capsys, slow_problem, formu
         "1e-6",
         "--max-iter",
         "30000",
+        *(["--finish", "none"] if formulation == "local_explicit" else []),  # the iteration's
     )
     assert out["status"] == "solved" and out["iterations"] > 1000, out["iterations"]
     assert out["gap"] > 0 and out["error_bound"] is not None
@@ -475,3 +492,23 @@ def test_tol_rel_is_checked_and_the_gap_is_printed(capsys, base):
     assert "gap          " in text
     assert "of the optimum: the 2-norm over every agent's inputs and every step of the " in text
     assert "horizon, in the inputs' own units)" in text
+
+
+def test_finish_flag(capsys, base, plain):
+    """--finish: its choices are the library's finishes; the default (active_set) and
+    none reach the same optimum, the finish in no more iterations; a formulation
+    without an exact finish refuses it by name."""
+    from ampc_jax.admm.finish import FINISHES
+    from ampc_jax.cli.args import FINISH_CHOICES
+
+    assert set(FINISH_CHOICES) == set(FINISHES)
+    assert plain["status"] == base["status"] == "solved"
+    assert base["iterations"] <= plain["iterations"]
+    for agent, u0 in base["u0"].items():
+        np.testing.assert_allclose(plain["u0"][agent], u0, atol=1e-3)
+    args = ["solve", "cruise_control", "--formulation", "fully_distributed", "--finish", "none"]
+    assert exit_code(args) == 2
+    assert (
+        "--finish: --formulation fully_distributed has no exact finish" in capsys.readouterr().err
+    )
+    assert exit_code(["solve", "cruise_control", "--finish", "exact"]) == 2

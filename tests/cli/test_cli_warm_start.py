@@ -84,8 +84,8 @@ def test_solve_applies_the_learned_start(tmp_path, capsys):
     data = problem.data(jnp.float64)
     path = tmp_path / "params.json"
     write_params(path, warm_start=_model("step", problem.topology, data))
-    base = _solve(capsys)
-    learned = _solve(capsys, "--params", str(path))
+    base = _solve(capsys, "--finish", "none")  # the iteration the start is made for
+    learned = _solve(capsys, "--params", str(path), "--finish", "none")
     assert learned["converged"] and base["converged"]
     assert learned["iterations"] != base["iterations"]  # the start moved
     for agent, u0 in base["u0"].items():  # the same solution

@@ -236,3 +236,23 @@ def test_one_compiled_step_serves_every_parameter_point(cruise_replay):
     tq_k, _, info_k = jax.jit(lambda: ctrl.step(args[0], p_c, *args[1:]))()
     np.testing.assert_allclose(tq_k, tq_c, rtol=1e-9, atol=1e-9)
     assert int(info_k.iterations) == it_c
+
+
+def test_the_closed_loop_runs_the_papers_iteration_unless_asked():
+    """The reproduction's controller, shadow and timing run the paper's iteration
+    (no finish, eq.opt_ro at every step) whatever Local Explicit's own defaults;
+    --finish active_set changes the controller's finish alone; a bad finish is
+    named."""
+    from ampc_jax.closed_loop.shadow import IntegratedShadow
+    from ampc_jax.formulations import PAPER_ITERATION
+
+    for name in ("cruise_lane_change", "stability_dlc"):
+        cfg = config_for(name, shadow=False)
+        s = controller_for(cfg).solver
+        assert (cfg.finish, s.finish, s.rho_method) == ("none", "none", "power")
+        fin = controller_for(config_for(name, shadow=False, finish="active_set")).solver
+        assert (fin.finish, fin.rho_method) == ("active_set", "power")
+        sh = IntegratedShadow(controller_for(cfg).topology).solver
+        assert {k: getattr(sh, k) for k in PAPER_ITERATION} == PAPER_ITERATION
+    with pytest.raises(ValueError, match=r"^finish: "):
+        config_for("cruise_lane_change", finish="exact")

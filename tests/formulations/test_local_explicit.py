@@ -306,7 +306,7 @@ def test_max_iter_status_and_no_recompile():
 def test_warm_start_shift_converges_to_same_and_saves_iterations():
     p = random_problem(6, 2, shared="all")
     T, d = p.topology, p.data()
-    solver = LocalExplicit(T, max_iter=5000)
+    solver = LocalExplicit(T, max_iter=5000, finish="none")  # the iteration's own warm start
     q = solver.params(tol_primal=1e-8, tol_dual=1e-8)
     fn = jax.jit(solver.solve)
     first = fn(d, q)
@@ -327,6 +327,13 @@ def test_warm_start_shift_converges_to_same_and_saves_iterations():
     # and residuals included) still iterates on the new data
     unshifted = fn(d2, q, first.state)
     assert int(unshifted.iterations) > 0 and bool(unshifted.converged)
+    # with the exact finish (the default) that state's active set is finished on the
+    # new data: the new optimum, not the previous step's inputs
+    fin = LocalExplicit(T, max_iter=5000)
+    done = jax.jit(fin.solve)(d2, q, first.state)
+    assert bool(done.converged)
+    np.testing.assert_allclose(done.u0, cold.u0, atol=1e-3)
+    assert not np.allclose(done.u0, first.u0, atol=1e-6)
     np.testing.assert_allclose(unshifted.u0, cold.u0, atol=1e-3)
     assert np.max(np.abs(np.asarray(first.u0) - np.asarray(cold.u0))) > 1e-2  # the trap is real
     # and so does a state stopped at the iteration cap
@@ -522,7 +529,8 @@ def test_anderson_saves_iterations():
     datas = stack([p.data() for p in problems])
     its = {}
     for m in (0, 3):
-        s = LocalExplicit(T, max_iter=20000, anderson=m)
+        # the iteration's own count: the exact finish would end both runs early
+        s = LocalExplicit(T, max_iter=20000, anderson=m, finish="none")
         q = s.params(tol_primal=1e-8, tol_dual=1e-8)
         r = jax.jit(jax.vmap(s.solve, in_axes=(0, None)))(datas, q)
         assert np.all(np.asarray(r.status) == Status.SOLVED)
@@ -568,7 +576,7 @@ def test_paper_dual_residual_is_rho_times_slack_change():
     optimum, as for the vehicle weights per Nm^2); the same optimum."""
     base = [random_problem(seed, 2, shared="all") for seed in range(3)]
     T = base[0].topology
-    slack = LocalExplicit(T, **TIGHT)
+    slack = LocalExplicit(T, **TIGHT, finish="none")  # the iteration's own stopping rule
     paper = dataclasses.replace(slack, dual_residual="paper")
 
     # the definition, iteration by iteration from the same iterate

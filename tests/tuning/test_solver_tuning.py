@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ampc_jax.formulations import formulation
+from ampc_jax.formulations import PAPER_ITERATION, formulation
 from ampc_jax.sweep import family
 from ampc_jax.tuning.solver import (
     Theta,
@@ -23,7 +23,7 @@ jax.config.update("jax_enable_x64", True)
 @pytest.fixture(scope="module")
 def batch():
     cases = family("cruise_step").sample(2, seed=0, dtype=jnp.float64)
-    solver = formulation("local_explicit", cases.topology)
+    solver = formulation("local_explicit", cases.topology, **PAPER_ITERATION)
     u_star = jnp.asarray(reference_inputs(cases.topology, cases.data))
     return solver, cases, u_star
 

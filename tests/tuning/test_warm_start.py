@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from ampc_jax.admm.learned_start import LearnedStart
-from ampc_jax.formulations import formulation
+from ampc_jax.formulations import PAPER_ITERATION, formulation
 from ampc_jax.sweep import family
 from ampc_jax.tuning.warm_start import start_table, tune_warm_start
 
@@ -46,7 +46,7 @@ def test_a_trained_tiny_network_saves_iterations_on_held_out_cases(trained):
     pre = [h["loss"] for h in trained.history if h["phase"] == "pretrain"]
     assert np.mean(pre[-20:]) < 0.2 * np.mean(pre[:20])
     held = family("cruise_step").sample(48, seed=7, dtype=jnp.float64)  # another seed
-    inner = formulation("local_explicit", held.topology, max_iter=500)
+    inner = formulation("local_explicit", held.topology, max_iter=500, **PAPER_ITERATION)
     p = inner.params(tol_primal=1.0, tol_dual=1.0)
     solve = lambda s: jax.jit(jax.vmap(s.solve, in_axes=(0, None)))(held.data, p)  # noqa: E731
     cold, learned = solve(inner), solve(LearnedStart(inner, model))

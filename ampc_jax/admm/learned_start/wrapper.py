@@ -117,10 +117,32 @@ class LearnedStart(ADMMSolver):
     def n_rho(self) -> int:
         return self.inner.n_rho
 
+    @property
+    def finish_every(self) -> int:  # type: ignore[override]
+        return int(getattr(self.inner, "finish_every", 1))
+
+    @property
+    def finish_first(self) -> int:  # type: ignore[override]
+        return int(getattr(self.inner, "finish_first", 1))
+
+    def finisher(self, setup: StartSetup) -> Any:
+        """``inner``'s exact finish on its own setup (None where it has none)."""
+        return self.inner.finisher(setup.main)
+
+    def setup_from(self, data: ProblemData, params: SolverParams | None, warm: Any) -> StartSetup:
+        """:meth:`setup` reusing what ``warm`` carries (``inner``'s
+        :meth:`~ampc_jax.admm.core.ADMMSolver.setup_from`: a carried rho_j*)."""
+        return self.setup_with(data, params, self.model.arrays(data.A.dtype), warm=warm)
+
     def setup_with(
-        self, data: ProblemData, params: SolverParams | None, arrays: StartArrays
+        self,
+        data: ProblemData,
+        params: SolverParams | None,
+        arrays: StartArrays,
+        warm: Any = None,
     ) -> Any:
-        """:meth:`setup` with the model's numbers given as ``arrays`` (for training)."""
+        """:meth:`setup` with the model's numbers given as ``arrays`` (for training);
+        ``warm``: the state the solve starts from (what ``inner``'s setup may reuse)."""
         n_in = n_features(data) + (self.model.n_point if self.model.kind == "loop" else 0)
         if self.model.input_mean.shape[0] != n_in:
             raise ValueError(
@@ -129,13 +151,13 @@ class LearnedStart(ADMMSolver):
             )
         dt = data.A.dtype
         p = self.inner.params(dtype=dt) if params is None else params
-        main = self.inner.setup(data, p)
+        main = self.inner.setup_from(data, p, warm)
         sched = None
         if arrays.schedule_rho.shape[0]:
             rho = jnp.asarray(p.rho, dt)
 
             def one(r: Any, a: Any) -> Any:
-                return self.inner.setup(data, p._replace(rho=rho * r, relaxation=a))
+                return self.inner.setup_from(data, p._replace(rho=rho * r, relaxation=a), warm)
 
             sched = jax.vmap(one)(arrays.schedule_rho, arrays.schedule_relaxation)
         return StartSetup(main, sched, data, arrays)
