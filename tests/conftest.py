@@ -52,6 +52,15 @@ import ampc_jax  # noqa: F401, E402  (sets XLA_FLAGS before the CPU backend star
 
 jax.config.update("jax_enable_x64", True)
 
+# Timeouts and failures (ampc_jax/testing/pytest_plugin.py): every test's timeout
+# is its budget, the seconds it may take on an idle 2-core machine under
+# `.ci/run` (its `@pytest.mark.timeout(S)`, else pyproject.toml's `timeout`),
+# times AMPC_TEST_TIMEOUT_SCALE (default 3: two busy processes beside the suite
+# halve each worker's core, with a margin of 1.5); a test's own deadlines (a
+# subprocess's timeout, a wait for output) use ampc_jax.testing.budget.budget(S).
+# A failure is printed with its reason as it happens, not only at the end.
+pytest_plugins = ["ampc_jax.testing.pytest_plugin", "pytester"]
+
 
 # Tests that time things (the can_bridge bridge's tick and watchdog windows)
 # or use both cores on purpose (the subprocesses of test_batch.py's sharding

@@ -27,6 +27,7 @@ import numpy as np
 import pytest
 
 import ampc_jax
+from ampc_jax.testing.budget import budget
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "bench"
@@ -62,7 +63,7 @@ def run_bench(script: str, *args: str, timeout: float) -> str:
         env=_shell_env(),
         capture_output=True,
         text=True,
-        timeout=timeout,
+        timeout=budget(timeout),
     )
     assert r.returncode == 0, (
         f"{script} {' '.join(args)} exited {r.returncode}\n"

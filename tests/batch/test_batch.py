@@ -15,6 +15,7 @@ import pytest
 from ampc_jax.batch import map_scenarios
 from ampc_jax.formulations import LocalExplicit
 from ampc_jax.generate import random_problem
+from ampc_jax.testing.budget import budget
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -70,7 +71,7 @@ def test_sharded_over_two_cpu_devices():
         env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
     ).strip()
     r = subprocess.run(
-        [sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=240
+        [sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=budget(240)
     )
     assert r.returncode == 0, r.stderr[-3000:]
     assert r.stdout.startswith("ok 2"), r.stdout
@@ -115,7 +116,7 @@ def test_sharded_batch_with_factorisations_does_not_deadlock():
             env=env,
             capture_output=True,
             text=True,
-            timeout=180,
+            timeout=budget(180),
         )
     except subprocess.TimeoutExpired:
         pytest.fail("sharded batched solve did not finish in 180 s (deadlock)")
