@@ -27,6 +27,9 @@ Targets: 0 stale, 0 intruder samples believed. The cases:
   replayed stream with a constant counter offset;
 * plausibility (item 4): the speed alternating 12 <-> 85 m/s each frame;
   front wheels at 40 m/s against 12;
+* bursts: one sender's VehicleMotion frames back to back, the counter +2 and
+  the speed +0.8 m/s each (12 -> 85 m/s), and a counter +1 variant
+  (``ampc_jax.testing.can_rx_burst``; the receive side's pace rule);
 * bad CRC 1 in 8 (item 13);
 * issue 21's: pty, serial adapter and socketcand stalls (frames found within
   20 ms of resuming, frames dropped for age), frozen / stepping / doubled /
@@ -76,6 +79,7 @@ from ampc_jax.testing.can_fault_peers import (
     read_all,
 )
 from ampc_jax.testing.can_peers import MOTION, WHEELS, CmdChecker, send_sensors, state_message
+from ampc_jax.testing.can_rx_burst import REPORT, Burst
 
 CYCLE = 0.02  # the sensors' cycle (the DBC's GenMsgCycleTime)
 
@@ -369,6 +373,17 @@ def plausibility() -> dict:
     return {
         "speed 12 <-> 85": _sensor_case(jumping),
         "wheels 40 vs 12 m/s": _sensor_case(lambda k: [(0.0, REAL, k)], extra=fast_wheels),
+    }
+
+
+def bursts() -> dict:
+    """One sender's VehicleMotion frames back to back, each claiming a cycle
+    per counter step and within the rate bound for that claim: the report's
+    12 -> 85 m/s burst (counter +2, +0.8 m/s) and a counter +1 variant
+    (+0.35 m/s). Target: 0 samples over 50 m/s believed."""
+    return {
+        "burst +2, +0.8 m/s x 90": _sensor_case(Burst(**REPORT).motion()),
+        "burst +1, +0.35 m/s x 90": _sensor_case(Burst(n=90, step=1, delta=0.35).motion()),
     }
 
 
@@ -894,6 +909,7 @@ def main() -> None:
         "reopen": reopen(),
         "intruders": intruders(),
         "plausibility": plausibility(),
+        "bursts": bursts(),
         "bad_crc_1_in_8": bad_crc_1_in_8(),
     }
     print("issue 29, per fault (target: 0 stale, 0 intruder samples believed):")
@@ -913,7 +929,7 @@ def main() -> None:
             f"(first frame RL {r['first_frame_RL_nm']:g} Nm, safety_state while closed "
             f"{r['safety_state_while_closed']})"
         )
-    for group in ("intruders", "plausibility"):
+    for group in ("intruders", "plausibility", "bursts"):
         for name, r in res[group].items():
             print(
                 f"{name:<30} {r['framed']:>6} {r['stale']:>5} {r['valid_pct']:>7.1f} "

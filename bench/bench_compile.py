@@ -280,7 +280,9 @@ def main(argv: list[str] | None = None) -> int:
             cache = work / f"cache_{len(rows)}"
             shutil.rmtree(cache, ignore_errors=True)
             cold = run_one(cmd, first, work, cache)
-            warm = None if args.no_warm else run_one(cmd, first, work, cache)
+            # the second run writes over the first's --out (refused without --force)
+            again = [*cmd, "--force"] if "--out" in cmd else cmd
+            warm = None if args.no_warm else run_one(again, first, work, cache)
             # the command as a reader types it (repository-relative, {w}: any scratch folder)
             rel = str(problem.relative_to(ROOT))
             rows[name] = {

@@ -102,6 +102,8 @@ Run (``--kkt``: default every name in ``ampc_jax.admm.kkt.KKT_SOLVES`` but
     python bench/bench_peers.py --full            # adds 100,000 cases
     taskset -c 1 python bench/bench_peers.py --only latency
     python bench/bench_peers.py --horizons 10 --max-batch 1000 --out /tmp/peers.json
+    python bench/bench_peers.py --finish active_set --rho-method carried   # the exact
+                                                  # finish and the carried rho (LE's options)
     python bench/bench_peers.py --smoke           # N_p 10, float64, the "auto" K, one
                                                   # 6-step latency drive, batches 1 and
                                                   # 10 of 3-step drives (about 50 s)
@@ -188,6 +190,7 @@ PROX_EPS_SCAN = (1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8)
 QPAX_ITERS = (10, 12, 15, 20, 25, 30, 40)  # fixed iteration counts, tried in this order
 CONVERGED_MIN = 0.99  # a tolerance scan stops where fewer steps converge (float32's floor)
 LE_FLOOR_FACTOR = 1.25
+LE_OPTIONS: dict[str, Any] = {}  # Local Explicit's strategy options (--finish, --rho-method)
 
 # -- sizes -----------------------------------------------------------------------------------
 SIZES = (1, 10, 100, 1000, 10000)
@@ -650,7 +653,7 @@ class LEBatch:
 
     def __init__(self, T: Topology, data_of: Any, kkt: str, dtype: str, tol: float) -> None:
         self.kkt, self.dtype, self.tol = kkt, dtype, tol
-        self.solver = LocalExplicit(T, max_iter=MAX_ITER, kkt=kkt)
+        self.solver = LocalExplicit(T, max_iter=MAX_ITER, kkt=kkt, **LE_OPTIONS)
         solver = self.solver
         self.data_of = data_of
         self.name = f"LE {kkt} {short(dtype)}"
@@ -949,7 +952,7 @@ class LEFull(Contender):
 
     def __init__(self, T, data_of, kkt, dtype, tol, lat) -> None:
         super().__init__()
-        self.solver = s = LocalExplicit(T, max_iter=MAX_ITER, kkt=kkt)
+        self.solver = s = LocalExplicit(T, max_iter=MAX_ITER, kkt=kkt, **LE_OPTIONS)
         self.p = le_params(s, tol, dtype)
         self.lat, self.dtype = lat, dtype
         self.name = f"LE {kkt} {short(dtype)} full step"
@@ -1271,6 +1274,7 @@ def run_latency_child(args: Any, settings: dict) -> dict:
         cmd += ["--settings", str(spath)]
         if args.kkt:
             cmd += ["--kkt", args.kkt]
+        cmd += ["--finish", args.finish, "--rho-method", args.rho_method]
         if args.smoke:
             cmd.append("--smoke")
         env = dict(os.environ)
@@ -1774,6 +1778,16 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="comma-separated KKT solves (default: every one select_kkt accepts but 'auto'; --smoke: the one 'auto' picks)",
     )
+    ap.add_argument(
+        "--finish",
+        default="none",
+        help="Local Explicit's finish: none (default, the paper's iteration) or active_set",
+    )
+    ap.add_argument(
+        "--rho-method",
+        default="power",
+        help="Local Explicit's rho rule: power (default), carried, eigh or given",
+    )
     ap.add_argument("--max-batch", type=int, default=None, help="largest batch size")
     ap.add_argument("--full", action="store_true", help="add 100,000 cases")
     ap.add_argument(
@@ -1811,6 +1825,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.repeats is None:
         args.repeats = 1 if args.smoke else 3
     args.kkt_list = args.kkt.split(",") if args.kkt else None
+    LE_OPTIONS.update(finish=args.finish, rho_method=args.rho_method)
     horizons = [int(h) for h in args.horizons.split(",")]
     dtypes = args.dtypes.split(",")
     sizes = list(SMOKE_SIZES if args.smoke else SIZES + (FULL_SIZES if args.full else ()))

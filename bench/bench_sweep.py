@@ -102,6 +102,7 @@ RHO_GRID = (0.5, 1.0, 2.0, 4.0)  # factors on eq.opt_ro's rho*
 ANDERSON = 3  # the closed-loop default
 MAX_ITER = 500
 TOL_SCAN = (1.0, 1e-1, 1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8)
+LE_OPTIONS: dict[str, Any] = {}  # Local Explicit's strategy options (--finish)
 LE_TOL = 1e-8  # Nm^2, the default; --tune-tol picks the loosest power of ten under ERR_TARGET
 CASES = (1, 10, 100, 1000, 10000)
 FULL_CASES = (100000,)
@@ -361,7 +362,7 @@ def le_setup(cases: Any, tol: float, n_cases: int) -> tuple[Any, Any, Any, Any]:
     from ampc_jax.sweep import pair_data, pair_params
 
     T = cases.topology
-    solver = formulation("local_explicit", T, max_iter=MAX_ITER, anderson=ANDERSON)
+    solver = formulation("local_explicit", T, max_iter=MAX_ITER, anderson=ANDERSON, **LE_OPTIONS)
     P = len(RHO_GRID)
     grid = solver.params(
         rho=np.asarray(RHO_GRID)[:, None] * np.ones((1, solver.n_rho)),
@@ -854,8 +855,14 @@ def main(argv: list[str] | None = None) -> int:
         help="print Local Explicit's error for tolerances 1 .. 1e-8 and pick LE_TOL",
     )
     ap.add_argument("--smoke", action="store_true", help="tiny sizes, a check of the code")
+    ap.add_argument(
+        "--finish",
+        default="none",
+        help="Local Explicit's finish: none (default, the paper's iteration) or active_set",
+    )
     _meta.add_out_argument(ap, STEM)
     args = ap.parse_args(argv)
+    LE_OPTIONS.update(finish=args.finish)
     args.le_tol = LE_TOL  # the throughput section's --tune-tol may change it
     if args.repeats is None:
         args.repeats = 1 if args.smoke else 3

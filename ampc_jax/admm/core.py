@@ -207,9 +207,26 @@ class ADMMSolver(abc.ABC):
             dtype=dtype,
         )
 
+    def setup_from(self, data: ProblemData, params: SolverParams | None, warm: Any) -> Any:
+        """:meth:`setup` for a solve starting from ``warm`` (a previous result's
+        state or None): a formulation whose setup reuses something the warm
+        start carries (Local Explicit's ``rho_method="carried"``) overrides it."""
+        return self.setup(data, params)
+
+    def finisher(self, setup: Any) -> Any:
+        """The exact finish of an iterate, ``finish(before, after, ran) -> state``
+        (:mod:`~.finish`), tried every :attr:`finish_every` iterations by the
+        runners; None (default) where the formulation has none or it is off."""
+        return None
+
+    finish_every: int = 1
+    finish_first: int = 1
+
     def run(self, setup: Any, state: Any) -> Any:
         """``lax.while_loop`` until :meth:`converged`, ``max_iter`` or a non-finite
-        residual (deployment; no reverse-mode derivative)."""
+        residual (deployment; no reverse-mode derivative); with a finish
+        (:meth:`finisher`), in segments of ``finish_every`` iterations, each
+        ended by a finish attempt."""
         return run_while(
             lambda st: self.step(setup, st),
             lambda st: self.converged(setup, st),
@@ -218,6 +235,9 @@ class ADMMSolver(abc.ABC):
             anderson=self.anderson,
             point=self.point,
             at=self.at,
+            finish=self.finisher(setup),
+            every=self.finish_every,
+            first=self.finish_first,
         )
 
     def run_fixed(self, setup: Any, state: Any, iterations: int) -> Any:
@@ -242,7 +262,7 @@ class ADMMSolver(abc.ABC):
         argument of the compiled step; ``warm``: a previous result's ``state``
         (shifted with :meth:`shift`). Pure and jittable; vmap over ``data`` and
         ``params`` together."""
-        setup = self.setup(data, params)
+        setup = self.setup_from(data, params, warm)
         res = self.result(setup, self.run(setup, self.init(setup, warm)))
         return with_certificate(res, data)
 
@@ -255,5 +275,5 @@ class ADMMSolver(abc.ABC):
     ) -> SolveResult:
         """One control step with a fixed iteration count (:meth:`run_fixed`): for
         ``jax.grad`` with respect to ``data`` and ``params``."""
-        setup = self.setup(data, params)
+        setup = self.setup_from(data, params, warm)
         return self.result(setup, self.run_fixed(setup, self.init(setup, warm), iterations))

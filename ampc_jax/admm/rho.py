@@ -9,9 +9,10 @@ several times slower on XLA:CPU). Objectives whose rows A_in,j are
 column-rank deficient always use the exact form with the known rank.
 
 How a formulation picks rho_j is a strategy chosen by name at construction
-(``rho_method``; :func:`select_rho`): :class:`PowerRho`, :class:`ExactRho`
-(a factor ``params.rho`` on the automatic rho_j*) or :class:`GivenRho`
-(``params.rho`` itself). The formulation gives the automatic rho_j* as a
+(``rho_method``; :func:`select_rho`): :class:`PowerRho`, :class:`ExactRho`,
+:class:`CarriedRho` (a factor ``params.rho`` on the automatic rho_j*,
+estimated, exact, or carried by the warm start from the previous step) or
+:class:`GivenRho` (``params.rho`` itself). The formulation gives the automatic rho_j* as a
 :class:`RhoEstimates` (eq.opt_ro for Local Explicit, Ghadimi's
 sqrt(lambda_min lambda_max) of H_j for Formulations 1 and 2).
 """
@@ -35,10 +36,12 @@ from .linalg import apply_blocks, eye_like, spd_inverse
 __all__ = [
     "RHO_RULES",
     "RHO_STEPS",
+    "CarriedRho",
     "ExactRho",
     "GivenRho",
     "PowerRho",
     "RhoEstimates",
+    "carried_or_estimate",
     "eq_opt_ro_exact",
     "eq_opt_ro_power",
     "extreme_eigenvalues",
@@ -57,10 +60,16 @@ __all__ = [
 # -- how rho_j is chosen: strategies behind one interface, chosen by name ------------
 class RhoEstimates(NamedTuple):
     """A formulation's automatic rho_j*, two ways: ``estimate()`` (an iterative estimate)
-    and ``exact()`` (an eigendecomposition; None where the formulation has none)."""
+    and ``exact()`` (an eigendecomposition; None where the formulation has none);
+    ``carried``: (J,) the rho_j* a warm start carries (0 where none), with
+    ``estimate_of(args)`` / ``args``, the estimate as a function of its array inputs
+    (for :class:`CarriedRho`'s batch-level decision)."""
 
     estimate: Callable[[], Any]
     exact: Callable[[], Any] | None = None
+    carried: Any = None
+    estimate_of: Callable[[Any], Any] | None = None
+    args: Any = None
 
 
 @dataclass(frozen=True)
@@ -71,8 +80,12 @@ class PowerRho:
     name: str = "power"
     needs_H: bool = False  # the formed H_j (only the exact eigendecomposition needs it)
 
+    def star(self, rho_star: RhoEstimates) -> Any:
+        """(J,) the automatic rho_j* this rule uses (None: it uses none)."""
+        return rho_star.estimate()
+
     def rho(self, factor: Any, rho_star: RhoEstimates) -> Any:
-        return factor * rho_star.estimate()
+        return factor * self.star(rho_star)
 
 
 @dataclass(frozen=True)
@@ -83,8 +96,11 @@ class ExactRho:
     name: str = "eigh"
     needs_H: bool = True
 
+    def star(self, rho_star: RhoEstimates) -> Any:
+        return rho_star.exact()
+
     def rho(self, factor: Any, rho_star: RhoEstimates) -> Any:
-        return factor * rho_star.exact()
+        return factor * self.star(rho_star)
 
 
 @dataclass(frozen=True)
@@ -95,8 +111,78 @@ class GivenRho:
     name: str = "given"
     needs_H: bool = False
 
+    def star(self, rho_star: RhoEstimates) -> Any:
+        return None
+
     def rho(self, factor: Any, rho_star: RhoEstimates) -> Any:
         return factor
+
+
+@dataclass(frozen=True)
+class CarriedRho:
+    """rho_j = ``params.rho[j]`` times the rho_j* the warm start carries (the
+    previous step's), estimated as :class:`PowerRho` does only where none is
+    carried (a cold start, or a solve that asked for a new estimate). Along a
+    drive the model moves little between steps, and rho only sets the
+    convergence rate: on bench/bench_peers.py's drives (N_p = 10) the held
+    rho_j* gave the same iterations and error, with the setup 38 % cheaper
+    (docs/bench_peers.md). Under ``vmap`` the estimate runs (for the whole
+    batch) when some case carries none, not, as a batched ``lax.cond`` would,
+    always (:func:`carried_or_estimate`)."""
+
+    name: str = "carried"
+    needs_H: bool = False
+
+    def star(self, rho_star: RhoEstimates) -> Any:
+        if rho_star.carried is None or rho_star.estimate_of is None:
+            return rho_star.estimate()
+        return carried_or_estimate(rho_star.carried, rho_star.args, rho_star.estimate_of)
+
+    def rho(self, factor: Any, rho_star: RhoEstimates) -> Any:
+        return factor * self.star(rho_star)
+
+
+def carried_or_estimate(carried: Any, args: Any, estimate: Callable[[Any], Any]) -> Any:
+    """(J,) ``carried`` where every entry is > 0, else ``estimate(args)``.
+
+    One ``lax.cond``; under ``vmap`` one decision for the batch (a custom
+    batching rule: the estimate runs, vmapped, when some case needs it, and is
+    kept where it was needed). Differentiable (forward and reverse): the
+    carried value is a constant, the estimate's derivative is its own."""
+
+    def select(c: Any, a: Any) -> Any:
+        return jax.lax.cond(jnp.all(c > 0), lambda x: c, estimate, a)
+
+    @jax.custom_batching.custom_vmap
+    def choose(c: Any, a: Any) -> Any:
+        return select(c, a)
+
+    @choose.def_vmap
+    def rule(axis_size: int, in_batched: Any, c: Any, a: Any) -> tuple:
+        c_b, a_b = in_batched
+
+        def full(x: Any, b: bool) -> Any:
+            return x if b else jnp.broadcast_to(x, (axis_size, *jnp.shape(x)))
+
+        c = full(c, c_b)
+        a = jax.tree.map(full, a, a_b)
+        need = ~jnp.all(c > 0, axis=-1)
+        est = jax.lax.cond(jnp.any(need), lambda x: jax.vmap(estimate)(x), lambda x: c, a)
+        return jnp.where(need[:, None], est, c), True
+
+    @jax.custom_jvp
+    def chosen(c: Any, a: Any) -> Any:
+        return choose(c, a)
+
+    @chosen.defjvp
+    def chosen_jvp(primals: tuple, tangents: tuple) -> tuple:
+        c, a = primals
+        _, ta = tangents
+        est, d_est = jax.jvp(estimate, (a,), (ta,))
+        keep = jnp.all(c > 0)
+        return jnp.where(keep, c, est), jnp.where(keep, jnp.zeros_like(d_est), d_est)
+
+    return chosen(jax.lax.stop_gradient(carried), args)
 
 
 RHO_STEPS = 4
@@ -108,7 +194,7 @@ and 20) at half the products: eq.opt_ro was 62 % to 76 % of a batched setup,
 and the Riccati setup fell from 29.7 to 20.5 us a case-step (issue 30's
 breakdown, docs/bench_peers.md)."""
 
-RHO_RULES: dict[str, Any] = {r.name: r for r in (PowerRho(), ExactRho(), GivenRho())}
+RHO_RULES: dict[str, Any] = {r.name: r for r in (PowerRho(), ExactRho(), GivenRho(), CarriedRho())}
 """``rho_method`` name -> strategy."""
 
 

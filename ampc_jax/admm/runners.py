@@ -18,7 +18,15 @@ import jax.numpy as jnp
 from ..validation import check_count
 from .acceleration import anderson_init, anderson_step
 
-__all__ = ["check_iterations", "loop_parts", "run_fixed", "run_while", "still_running"]
+__all__ = [
+    "check_iterations",
+    "loop_parts",
+    "replace_iterate",
+    "run_fixed",
+    "run_segment",
+    "run_while",
+    "still_running",
+]
 
 
 def check_iterations(iterations: Any, name: str = "iterations", low: int = 1) -> int:
@@ -48,6 +56,45 @@ def loop_parts(
     return (state, anderson_init(point(state), anderson)), accelerated, lambda c: c[0]
 
 
+def replace_iterate(carry: Any, state: Any, anderson: int) -> Any:
+    """``carry`` (:func:`loop_parts`' form) with its iterate replaced by ``state``."""
+    return (state, carry[1]) if anderson else state
+
+
+def _freeze(go: Any, new: Any, old: Any) -> Any:
+    return jax.tree.map(lambda a, b: jnp.where(go, a, b), new, old)
+
+
+def run_segment(
+    body: Callable[[Any], Any],
+    iterate_of: Callable[[Any], Any],
+    running: Callable[[Any], Any],
+    carry: Any,
+    length: int,
+    *,
+    finish: Callable[[Any, Any, Any], Any] | None = None,
+    anderson: int = 0,
+) -> Any:
+    """``length`` iterations of ``body`` on ``carry``, each one only where ``running``
+    (a stopped iterate keeps its state and count), then ``finish(before, after,
+    ran)`` of the last iteration (None: no finish): the formulation's exact
+    finish (:mod:`~.finish`), which returns ``after`` or its verified finish.
+    The pieces come from :func:`loop_parts`."""
+
+    def one(c: Any, _: Any) -> tuple[Any, None]:
+        return _freeze(running(c), body(c), c), None
+
+    if finish is None:
+        return jax.lax.scan(one, carry, None, length=length)[0]
+    if length > 1:
+        carry = jax.lax.scan(one, carry, None, length=length - 1)[0]
+    before = iterate_of(carry)
+    go = running(carry)
+    if length > 0:
+        carry = _freeze(go, body(carry), carry)
+    return replace_iterate(carry, finish(before, iterate_of(carry), go), anderson)
+
+
 def still_running(st: Any, converged: Callable[[Any], Any], max_iter: int) -> Any:
     """Whether :func:`run_while` iterates again from ``st``: under the cap, not
     converged (eq.Convergence) and every residual finite (or none computed yet)."""
@@ -64,16 +111,36 @@ def run_while(
     anderson: int = 0,
     point: Callable[[Any], Any] | None = None,
     at: Callable[[Any, Any], Any] | None = None,
+    finish: Callable[[Any, Any, Any], Any] | None = None,
+    every: int = 1,
+    first: int = 1,
 ) -> Any:
     """Iterate ``step`` until ``converged`` (eq.Convergence), ``max_iter`` or a
     non-finite residual. ``state`` needs ``iteration`` and ``primal`` fields;
-    ``point`` / ``at`` map it to and from the accelerated vector (``anderson`` > 0)."""
+    ``point`` / ``at`` map it to and from the accelerated vector (``anderson`` > 0).
+
+    With ``finish`` (a formulation's exact finish, ``finish(before, after, ran)``
+    -> state): ``first`` iterations (0: none), then segments of ``every`` iterations
+    (:func:`run_segment`), each ended by a finish attempt; a verified finish passes ``converged``, so the
+    loop stops there. Iteration counts are those of the plain loop."""
 
     def cond(st: Any) -> Any:
         return still_running(st, converged, max_iter)
 
     carry, body, iterate_of = loop_parts(step, state, anderson, point, at)
-    return iterate_of(jax.lax.while_loop(lambda c: cond(iterate_of(c)), body, carry))
+    if finish is None:
+        return iterate_of(jax.lax.while_loop(lambda c: cond(iterate_of(c)), body, carry))
+
+    def running(c: Any) -> Any:
+        return cond(iterate_of(c))
+
+    def segment(c: Any, length: int) -> Any:
+        return run_segment(body, iterate_of, running, c, length, finish=finish, anderson=anderson)
+
+    # the first attempt after ``first`` iterations (0: the start's own active set; a
+    # warm start's is often final)
+    carry = segment(carry, int(first))
+    return iterate_of(jax.lax.while_loop(running, lambda c: segment(c, int(every)), carry))
 
 
 def run_fixed(

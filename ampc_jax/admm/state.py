@@ -30,6 +30,9 @@ class ADMMState(NamedTuple):
         rows first, in ``Topology.group_rows(j)`` order).
     iteration : () int32.
     primal, dual : (J,) ||r_j||^2 and ||s_j||^2 of the last iteration.
+    rho_star : (J,) eq.opt_ro's rho_j* the solve that made this iterate used, 0
+        where none (the cold start; a solve asking the next one to estimate
+        anew). ``rho_method="carried"`` starts from it instead of estimating.
 
     Per-objective views: :meth:`LocalExplicit.local_inputs`,
     :meth:`LocalExplicit.multipliers`; from per-objective arrays:
@@ -42,6 +45,7 @@ class ADMMState(NamedTuple):
     iteration: Any
     primal: Any
     dual: Any
+    rho_star: Any
 
 
 def shift_horizon(x: Any, steps: int = 1, axis: int = 0) -> Any:
@@ -73,6 +77,7 @@ def shift_state(state: ADMMState, steps: int = 1) -> ADMMState:
         iteration=jnp.zeros((), jnp.int32),
         primal=inf,
         dual=inf,
+        rho_star=state.rho_star,
     )
 
 
@@ -90,6 +95,7 @@ def cold_state(topology: Topology, dtype: Any = None) -> ADMMState:
         iteration=jnp.zeros((), jnp.int32),
         primal=jnp.full((J,), jnp.inf, dtype),
         dual=jnp.full((J,), jnp.inf, dtype),
+        rho_star=jnp.zeros((J,), dtype),
     )
 
 

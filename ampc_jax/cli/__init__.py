@@ -1,9 +1,11 @@
 """The ``ampc`` command line: ``solve``, ``simulate``, ``demo``, ``run``, ``plant``,
-``export``, ``replay``, ``sweep``, ``tune``.
+``export``, ``replay``, ``sweep``, ``sweep-merge``, ``tune``.
 
 Errors go to stderr as ``ampc: error: --flag: message`` with exit code 2 (bad
 input); library warnings as ``ampc: warning: ...`` lines. Nothing in the
-library imports this package.
+library imports this package. A command refuses a non-empty ``--out`` unless
+``--force``, and a failed one removes what it created and left empty
+(:mod:`~ampc_jax.cli.outdir`).
 
 Every command keeps JAX's persistent compilation cache in the user's cache
 directory (:func:`cache_dir`): a command's second run loads its compiled
@@ -22,6 +24,7 @@ import sys
 from pathlib import Path
 
 from .. import __version__
+from . import outdir
 from .args import Parser, fail
 from .runtime import add_runtime_commands
 from .simulate import add_simulate_commands
@@ -136,10 +139,15 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _use_compilation_cache(args)
+    outdir.begin()
+    code = 1  # an exception: what the command created and left empty is removed
     try:
-        return int(args.func(args))
+        code = int(args.func(args))
     except KeyboardInterrupt:
-        return fail("interrupted", 130)
+        code = fail("interrupted", 130)
     except BrokenPipeError:  # output piped into e.g. `head`: not an error of ours
         sys.stdout = None
-        return 0
+        code = 0
+    finally:
+        outdir.finish(code)
+    return code

@@ -20,6 +20,7 @@ from typing import Any, NoReturn
 from ..validation import check_count, check_non_negative, check_positive, check_relaxation
 
 __all__ = [
+    "enable_x64",
     "ANDERSON_MEMORIES",
     "PARAMS_HELP",
     "Parser",
@@ -38,6 +39,13 @@ __all__ = [
     "with_params_file",
     "warnings_as_lines",
 ]
+
+
+def enable_x64() -> None:
+    """float64 for what the command computes (JAX's x64 mode), set before any array."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
 
 
 def fail(msg: str, code: int = 2) -> int:

@@ -1,13 +1,12 @@
-"""``ampc run``, ``ampc plant``, ``ampc export``, ``ampc replay``: deployment.
+"""``ampc run``, ``ampc plant``, ``ampc export``: deployment (``ampc replay``:
+:mod:`.replay`).
 
 ``ampc run --channel URI --scenario NAME --out DIR`` runs the compiled
 controller at 20 Hz next to the CAN bridge (``--with-plant`` also starts
 ``ampc plant`` on the bridge's fresh pseudo-terminal: the whole demo in one
 line); ``ampc plant`` is the simulated vehicle on the other end of the bus;
 ``ampc export`` writes the controller step as a ``jax.export`` artefact that
-``ampc run --artefact`` checks and runs; ``ampc replay`` re-runs a logged run
-offline, bit for bit, and with other settings, or (``--candump``) a drive's
-candump log (docs/runtime.md).
+``ampc run --artefact`` checks and runs (docs/runtime.md).
 """
 
 from __future__ import annotations
@@ -21,15 +20,18 @@ from typing import Any
 
 import numpy as np
 
+from . import extras
 from .args import (
     PARAMS_HELP,
     arg_type,
+    enable_x64,
     fail,
     flag_error,
-    output_dir,
     positive_finite,
     with_params_file,
 )
+from .outdir import add_force, claim_dir, claim_file
+from .replay import add_replay_command
 
 __all__ = ["add_runtime_commands"]
 
@@ -39,12 +41,6 @@ _FLAGS = {
     "scenario": "--scenario",
     "fault": "--fault",
 }
-
-
-def _x64() -> None:
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
 
 
 def _commit() -> str | None:
@@ -116,14 +112,6 @@ def _golden_bus(spec: Any) -> np.ndarray:
     return bus_vector(ps, steer, T, v_ref, float(sc.mu))
 
 
-def _is_float(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
-
-
 def _rt_priority(text: str) -> int:
     try:
         p = int(text)
@@ -183,6 +171,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     exit 2 at once), the plant started, the in-process step compiled, the loop."""
     import os
 
+    needs = extras.BRIDGE + (extras.EXPORT if args.artefact else ())
+    missing = extras.missing_message("run", needs + (extras.PLANT if args.with_plant else ()))
+    if missing:
+        return fail(missing)
     if args.cpus:
         os.sched_setaffinity(0, args.cpus)
     rt_priority, rt_warning, rt_error = _scheduling(args.rt_priority)
@@ -190,7 +182,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         return fail(rt_error)
     if rt_warning:
         print(f"ampc: warning: {rt_warning}", file=sys.stderr)
-    _x64()
+    enable_x64()
     if rt_priority is not None:
         import jax
 
@@ -211,7 +203,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         return fail(flag_error(exc, _FLAGS))
     if args.with_plant and args.channel != "slcan-pty:":
         return fail("--with-plant: needs --channel slcan-pty: (the plant opens its pty)")
-    problem = output_dir(args.out)
+    problem = claim_dir(args.out, args.force)
     if problem:
         return fail(problem)
     out = Path(args.out)
@@ -267,6 +259,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             "--out",
             str(out / "plant"),
             "--quiet",
+            "--force",  # OUT is this run's (claimed above), OUT/plant too
         ]
         for f in args.plant_fault or ():
             plant_cmd += ["--fault", f]
@@ -354,7 +347,10 @@ def _run_duration(args: argparse.Namespace) -> float:
 
 def cmd_plant(args: argparse.Namespace) -> int:
     """``ampc plant``: the simulated vehicle on the bus."""
-    _x64()
+    missing = extras.missing_message("plant", extras.PLANT)
+    if missing:
+        return fail(missing)
+    enable_x64()
     from ..runtime.faults import SENSOR_FAULTS
     from ..runtime.plant_node import write_report
     from ..vehicle import SCENARIOS
@@ -367,7 +363,7 @@ def cmd_plant(args: argparse.Namespace) -> int:
         faults = _faults(args.fault, SENSOR_FAULTS)
     except ValueError as exc:
         return fail(flag_error(exc, {"fault": "--fault"}))
-    problem = output_dir(args.out)
+    problem = claim_dir(args.out, args.force)
     if problem:
         return fail(problem)
     out = Path(args.out)
@@ -406,7 +402,10 @@ def _plant_node(args: argparse.Namespace, faults: tuple[Any, ...], out: Path) ->
 
 def cmd_export(args: argparse.Namespace) -> int:
     """``ampc export``: the controller step as a jax.export artefact."""
-    _x64()
+    missing = extras.missing_message("export", extras.EXPORT)
+    if missing:
+        return fail(missing)
+    enable_x64()
     from ..runtime.artefact import export_step
     from ..runtime.step import RuntimeStep
     from ..vehicle import SCENARIOS
@@ -416,9 +415,10 @@ def cmd_export(args: argparse.Namespace) -> int:
         step = RuntimeStep(cfg, "float32" if args.float32 else "float64")
     except ValueError as exc:
         return fail(flag_error(exc, _FLAGS))
+    problem = claim_file(args.out, args.force)
+    if problem:
+        return fail(problem)
     path = Path(args.out)
-    if path.parent and not path.parent.exists():
-        return fail(f"--out {args.out}: the directory {path.parent} does not exist")
     try:
         m = export_step(step, _golden_bus(SCENARIOS[args.scenario]), path, scenario=args.scenario)
     except OSError as exc:  # a FileError: names the file
@@ -430,147 +430,12 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_replay(args: argparse.Namespace) -> int:
-    """``ampc replay``: a logged run re-run offline, and with other settings; or
-    (``--candump``) a drive's candump log through the controller."""
-    _x64()
-    from ..runtime.replay import replay_run
-
-    if args.candump is not None:
-        return _replay_candump(args)
-    if args.log is None:
-        return fail("replay: expected a run's output directory, or --candump FILE")
-    if args.scenario is not None or args.lead_ms is not None:
-        flag = "--scenario" if args.scenario is not None else "--lead-ms"
-        return fail(f"{flag}: only with --candump (a run directory's run.json names it)")
-    problem = output_dir(args.out)
-    if problem:
-        return fail(problem)
-    rho = None
-    if args.rho_scale:
-        items = args.rho_scale.split(",")
-        bad = [x for x in items if not _is_float(x)]
-        if bad:
-            return fail(f"--rho-scale: expected comma-separated numbers, got {bad[0]!r}")
-        rho = tuple(float(x) for x in items)
-        if not all(np.isfinite(r) and r > 0 for r in rho):
-            return fail(f"--rho-scale: expected positive finite numbers, got {args.rho_scale!r}")
-    progress = lambda line: print(line, flush=True)  # noqa: E731
-    try:
-        res = replay_run(
-            Path(args.log),
-            Path(args.out),
-            rho_scales=rho,
-            formulations=tuple(args.formulation or ()),
-            float32=args.float32,
-            progress=progress,
-        )
-    except (OSError, ValueError) as exc:
-        return fail(f"replay: {exc}")
-    d, lg = res["determinism"], res["log"]
-    if not lg["complete"]:
-        how = {
-            False: f"it was killed (its process {lg['pid']} is gone)",
-            True: f"it is still running (process {lg['pid']})",
-            None: "killed, or still running on another machine",
-        }[lg["alive"]]
-        print(
-            f"ampc: warning: {args.log} did not finish: {how}; no final logs were written, "
-            f"replayed the {lg['ticks']} ticks its {lg['source']} holds",
-            file=sys.stderr,
-        )
-    for note in lg["notes"]:
-        print(f"ampc: warning: {note}", file=sys.stderr)
-    if res.get("environment_mismatch"):
-        print(
-            f"ampc: warning: the run's environment differs from this one (run, now): "
-            f"{res['environment_mismatch']}",
-            file=sys.stderr,
-        )
-    print(
-        f"checked {lg['ticks']} ticks of {lg['source']} against run.json and "
-        f"{lg['frames_checked']} framed commands against bridge.log"
-    )
-    print(
-        f"replayed {d['ticks']} ticks: {d['identical']} commands identical bit for bit, "
-        f"{d['differ']} differ (max |dT| {d['max_abs_diff_nm']:g} Nm)"
-    )
-    for v in res["variants"]:
-        print(
-            f"  {v['variant']:<28} max |dT| {v['max_abs_diff_nm']:8.2f} Nm, rms "
-            f"{v['rms_diff_nm']:7.2f} Nm, iterations mean {v['iterations_mean']:.1f}"
-        )
-    print(f"wrote {Path(args.out) / 'replay.json'}, {Path(args.out) / 'replay.parquet'}")
-    return 0 if d["differ"] == 0 else 1
-
-
-def _replay_candump(args: argparse.Namespace) -> int:
-    """``ampc replay --candump FILE --scenario NAME``."""
-    from ..runtime.candump import CandumpError, replay_candump
-    from ..vehicle import SCENARIOS
-
-    if args.log is not None:
-        return fail(f"--candump: replays a candump log, not also the run directory {args.log!r}")
-    if args.scenario is None:
-        return fail("--scenario: required with --candump (the controller to replay)")
-    if args.scenario not in SCENARIOS:
-        return fail(
-            f"--scenario: unknown scenario {args.scenario!r}; expected one of {sorted(SCENARIOS)}"
-        )
-    if args.rho_scale or args.float32 or len(args.formulation or ()) > 1:
-        return fail(
-            "--candump: replays one controller (one --formulation at most; no --rho-scale "
-            "or --float32)"
-        )
-    lead = 25.0 if args.lead_ms is None else float(args.lead_ms)
-    if not 0.0 < lead < 45.0:
-        return fail(f"--lead-ms: expected a lead time in (0, 45) ms, got {args.lead_ms!r}")
-    problem = output_dir(args.out)
-    if problem:
-        return fail(problem)
-    out = Path(args.out)
-    try:
-        res = replay_candump(
-            Path(args.candump),
-            args.scenario,
-            out,
-            formulation=(args.formulation or [None])[0],
-            lead_ms=lead,
-            progress=lambda line: print(line, flush=True),
-        )
-    except CandumpError as exc:
-        return fail(f"replay: {exc}")
-    except OSError as exc:
-        return fail(f"replay: {exc}", 1)
-    by = ", ".join(f"{k} {v}" for k, v in sorted(res["frames_by_message"].items()))
-    refused = sum(res["frames_refused"].values())
-    print(
-        f"read {args.candump}: {res['frames']} frames ({by}; {refused} refused, "
-        f"{res['frames_other']} of other messages)"
-    )
-    skipped = ", ".join(f"{k} {v}" for k, v in sorted(res["skipped"].items())) or "none"
-    print(
-        f"replayed {res['ticks']} ticks on {res['ticks_on']} (lead {lead:g} ms): "
-        f"stepped {res['stepped']}, skipped {skipped}"
-    )
-    if res["compared"]:
-        print(
-            f"compared {res['compared']} active frames: {res['identical']} identical bit for "
-            f"bit, {res['differ']} differ (max |dT| {res['max_abs_diff_nm']:g} Nm)"
-        )
-    else:
-        print("the log holds no active torque frame to compare with")
-    print(f"wrote {out / 'candump_replay.json'}, {out / 'candump_replay.parquet'}, "
-          f"{out / 'candump_replay.png'}")  # fmt: skip
-    return 0
-
-
 def add_runtime_commands(sub: Any) -> None:
     """Register ``run``, ``plant``, ``export`` and ``replay``."""
-    from ..closed_loop import FORMULATIONS
+    from ..formulations import formulation_names
     from ..runtime.faults import CONTROLLER_FAULTS, SENSOR_FAULTS
 
-    forms = [f for f in FORMULATIONS if f != "none"]
+    forms = list(formulation_names(closed_loop=True))
     r = sub.add_parser(
         "run",
         help="the controller at 20 Hz next to the CAN bridge",
@@ -657,6 +522,7 @@ def add_runtime_commands(sub: Any) -> None:
     )
     r.add_argument("--quiet", action="store_true", help="no progress line (default: one a second)")
     r.add_argument("--out", default="run", help="output directory (default: run)")
+    add_force(r)
     r.set_defaults(func=cmd_run)
 
     p = sub.add_parser(
@@ -698,6 +564,7 @@ def add_runtime_commands(sub: Any) -> None:
     )
     p.add_argument("--quiet", action="store_true", help="no progress line (default: one a second)")
     p.add_argument("--out", default="plant", help="output directory (default: plant)")
+    add_force(p)
     p.set_defaults(func=cmd_plant)
 
     e = sub.add_parser(
@@ -713,56 +580,6 @@ def add_runtime_commands(sub: Any) -> None:
     e.add_argument("--float32", action="store_true", help="float32 step (default: float64)")
     e.add_argument("--params", metavar="FILE", default=None, help=PARAMS_HELP)
     e.add_argument("--out", required=True, help="the artefact file to write (required)")
+    add_force(e, "replace an --out file that exists (default: refuse it)")
     e.set_defaults(func=cmd_export)
-
-    p = sub.add_parser(
-        "replay",
-        help="re-run a logged run offline, bit for bit and with other settings",
-        description="Re-run the controller step on the states `ampc run` logged: the "
-        "determinism check (every command reproduced bit for bit), then the same states "
-        "with other rho scales (one vmapped batch), formulations or float32.",
-    )
-    p.add_argument(
-        "log",
-        nargs="?",
-        default=None,
-        help="the run's output directory (with ticks.parquet and run.json) (default: none, "
-        "with --candump)",
-    )
-    p.add_argument(
-        "--candump",
-        metavar="FILE",
-        default=None,
-        help="replay a drive's candump log (candump -l) instead: its state frames through "
-        "the controller at their timestamps, its torque frames compared with what the "
-        "controller would have framed (needs --scenario) (default: none)",
-    )
-    p.add_argument(
-        "--scenario",
-        default=None,
-        help="with --candump: the scenario the controller is set up for (default: none)",
-    )
-    p.add_argument(
-        "--lead-ms",
-        type=arg_type(positive_finite),
-        default=None,
-        help="with --candump: the state is read this long before each torque frame, as "
-        "`ampc run --lead-ms` did (default: 25)",
-    )
-    p.add_argument(
-        "--rho-scale",
-        default=None,
-        help="comma-separated factors on the run's own rho scales (the example's default, "
-        "e.g. the cruise example's (1, 0.5): 1 replays the run's setting), replayed in one "
-        "vmapped batch (default: none)",
-    )
-    p.add_argument(
-        "--formulation",
-        action="append",
-        choices=forms,
-        help="also replay with this formulation, repeatable; with --candump, the "
-        "controller's formulation (default: none; with --candump the scenario's)",
-    )
-    p.add_argument("--float32", action="store_true", help="also replay in float32 (default: off)")
-    p.add_argument("--out", default="replay", help="output directory (default: replay)")
-    p.set_defaults(func=cmd_replay)
+    add_replay_command(sub, forms)

@@ -26,11 +26,11 @@ from .args import (
     at_least_one,
     fail,
     flag_error,
-    output_dir,
     positive_finite,
     progress_disabled,
     with_params_file,
 )
+from .outdir import add_force, claim_dir
 
 __all__ = ["add_simulate_commands", "cmd_demo", "cmd_simulate"]
 
@@ -227,7 +227,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         base_cfg = baseline_config(cfg) if args.compare else None
     except ValueError as exc:
         return fail(flag_error(exc, _FLAGS))
-    problem = output_dir(args.out)
+    problem = claim_dir(args.out, args.force)
     if problem:
         return fail(problem)
     print(_header(args.scenario, cfg))
@@ -346,7 +346,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from ..closed_loop import baseline_config, config_for
     from ..vehicle import SCENARIOS
 
-    problem = output_dir(args.out)
+    problem = claim_dir(args.out, args.force)
     if problem:
         return fail(problem)
     out = Path(args.out)
@@ -501,6 +501,7 @@ def add_simulate_commands(sub: Any) -> None:
     add_output_flags(
         p, float32="simulate", quiet="no progress bar (default: a bar on a terminal)", out="out"
     )
+    add_force(p)
     p.set_defaults(func=cmd_simulate)
 
     d = sub.add_parser(
@@ -510,6 +511,7 @@ def add_simulate_commands(sub: Any) -> None:
         "plant, LST+YRT against LST alone, with e_sub, iterations and r_time.",
     )
     d.add_argument("--out", default="demo", help="output directory (default: demo)")
+    add_force(d)
     d.add_argument(
         "--quiet", action="store_true", help="no progress bar (default: a bar on a terminal)"
     )

@@ -14,9 +14,10 @@ from .args import (
     at_least_one,
     fail,
     flag_error,
-    output_dir,
     positive_finite,
 )
+from .outdir import claim_dir
+from .shards import add_merge_command, add_shard_flags, holds_sweep, quantile_lines, shard_report
 
 __all__ = ["add_sweep_command", "cmd_sweep"]
 
@@ -39,6 +40,7 @@ _FLAGS = {
         "duration",
         "groups",
         "out",
+        "shard",
     )
 }
 """SweepSpec's fields (and ``out``) -> their flags, for the library's messages."""
@@ -50,27 +52,6 @@ def _force_cpu_devices(n: int) -> None:
     old = os.environ.get("XLA_FLAGS", "")
     parts = [p for p in old.split() if not p.startswith("--xla_force_host_platform_device_count")]
     os.environ["XLA_FLAGS"] = " ".join([*parts, flag])
-
-
-def _quantile_lines(table: Any) -> list[str]:
-    import numpy as np
-
-    rho = table.column("rho_scale").to_numpy()
-    it = table.column("iterations").to_numpy().astype(float)
-    conv = table.column("converged").to_numpy()
-    e = table.column("e_sub").to_numpy()
-    lines = [
-        f"{'rho scale':>10} {'median':>7} {'p95':>7} {'max':>6} {'conv %':>7} {'max e_sub':>10}"
-    ]
-    for s in np.unique(rho):
-        m = rho == s
-        ee = e[m & conv]
-        worst = f"{np.nanmax(ee):10.2e}" if ee.size and np.isfinite(ee).any() else f"{'-':>10}"
-        lines.append(
-            f"{s:10.4g} {np.median(it[m]):7.0f} {np.percentile(it[m], 95):7.0f} "
-            f"{it[m].max():6.0f} {100 * conv[m].mean():7.1f} {worst}"
-        )
-    return lines
 
 
 def _solver_defaults(args: argparse.Namespace) -> tuple[float, int, str]:
@@ -121,7 +102,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         grid = rho_grid(args.rho)
     except ValueError as exc:
         return fail(f"--rho: {exc}")
-    err = output_dir(args.out)
+    err = claim_dir(args.out, args.force, resumes=holds_sweep)
     if err:
         return fail(err)
     try:
@@ -149,7 +130,11 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             groups=args.groups,
         )
         summary = run_sweep(
-            spec, args.out, progress=False if args.quiet else None, figures=not args.no_figures
+            spec,
+            args.out,
+            progress=False if args.quiet else None,
+            figures=not args.no_figures,
+            shard=args.shard,
         )
     except ValueError as exc:
         return fail(flag_error(exc, _FLAGS))
@@ -157,6 +142,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         return fail(f"--out: {args.out}: {exc.strerror or exc}")
     if jax.process_index() != 0:
         return 0
+    if args.shard is not None:
+        return shard_report(summary, spec, args.shard)
     import pyarrow.parquet as pq
 
     tab = pq.read_table(summary.table)
@@ -182,7 +169,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             f"  solve {summary.solve_s:.1f} s ({rate}), reference {summary.reference_s:.1f} s, "
             f"waste {summary.waste:.2f}x (pair-iterations computed / needed)"
         )
-    for line in _quantile_lines(tab):
+    for line in quantile_lines(tab):
         print("  " + line)
     print(f"  table: {summary.table}")
     for f in summary.figures:
@@ -202,7 +189,8 @@ def add_sweep_command(sub: Any) -> None:
             "Solve cases of a scenario family for every point of a rho-scale grid in one "
             "compiled program (compaction; sharded over all devices), compare each first "
             "step with the integrated optimum (Clarabel), and write OUT/sweep.parquet, "
-            "OUT/sweep.json and figures. A rerun into the same OUT resumes."
+            "OUT/sweep.json and figures. A rerun into the same OUT resumes. --shard I/N "
+            "runs one share as an array job; `ampc sweep-merge` joins the shards."
         ),
     )
     p.add_argument(
@@ -303,4 +291,6 @@ def add_sweep_command(sub: Any) -> None:
     add_output_flags(
         p, float32="solve", quiet="no progress bar (default: on a terminal)", out="sweep"
     )
+    add_shard_flags(p)
     p.set_defaults(func=cmd_sweep)
+    add_merge_command(sub)

@@ -20,9 +20,9 @@ from .args import (
     at_least_one,
     fail,
     flag_error,
-    output_dir,
     positive_finite,
 )
+from .outdir import add_force, claim_dir
 
 __all__ = ["add_tune_command", "cmd_tune"]
 
@@ -321,7 +321,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
     print(header)
     if args.heldout_cases < (0 if args.objective == "warm_start" else 1):
         return fail(f"--heldout-cases: expected an integer >= 1, got {args.heldout_cases}")
-    problem = output_dir(args.out)
+    problem = claim_dir(args.out, args.force)
     if problem:
         return fail(problem)
     out = Path(args.out)
@@ -467,4 +467,5 @@ def add_tune_command(sub: Any) -> None:
         quiet="no progress bar (default: shown)",
         out_required=True,
     )
+    add_force(p)
     p.set_defaults(func=cmd_tune)

@@ -58,6 +58,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -65,6 +66,15 @@ from ..admm import stopping as stop
 from ..admm.acceleration import anderson_memory
 from ..admm.core import ADMMSolver, FormulationInfo
 from ..admm.costs import padded_costs
+from ..admm.finish import (
+    FINISH_CORRECTIONS,
+    FINISH_EVERY,
+    attempt,
+    default_tol,
+    finish_data,
+    finish_solve,
+    select_finish,
+)
 from ..admm.kkt import KKT, KKT_SOLVES, select_kkt
 from ..admm.layout import padded_layout
 from ..admm.learned_start.multipliers import kkt_multipliers
@@ -79,9 +89,9 @@ from ..validation import check_count
 
 __all__ = ["DUAL_RESIDUALS", "RHO_METHODS", "LocalExplicit", "LocalSetup"]
 
-RHO_METHODS = ("power", "eigh", "given")
-"""How rho_j is found: eq.opt_ro by power iteration or exactly (times
-``params.rho``), or ``params.rho`` itself."""
+RHO_METHODS = ("power", "eigh", "given", "carried")
+"""How rho_j is found: eq.opt_ro by Lanczos steps or exactly, or carried by the
+warm start from the previous step (times ``params.rho``), or ``params.rho`` itself."""
 
 DUAL_RESIDUALS = ("slack", "paper")
 """Forms of the dual stopping test (see :class:`LocalExplicit`)."""
@@ -115,6 +125,10 @@ class LocalSetup(NamedTuple):
     E : (J, n) E_j and hessian : H_j in the KKT strategy's form
         (:mod:`ampc_jax.admm.hessian`), for the duality gap of a result.
     b2 : (J,) ||bbar_j||^2, the data part of the relative tolerance's scale.
+    rho_star : (J,) eq.opt_ro's rho_j* the rule used (zeros for ``"given"``), what
+        the result's state carries to the next step.
+    finish : the integrated LQ problem of the exact finish
+        (:class:`~ampc_jax.admm.finish.FinishData`), None without a finish.
     """
 
     Ain: Any
@@ -132,6 +146,8 @@ class LocalSetup(NamedTuple):
     E: Any
     hessian: Any
     b2: Any
+    rho_star: Any = None
+    finish: Any = None
 
 
 @dataclass(frozen=True)
@@ -167,8 +183,16 @@ class LocalExplicit(ADMMSolver):
         ``"eigh"``: the same with the exact eigendecomposition (the reference
         the estimate is tested against; several times slower on XLA:CPU);
         ``"given"``: rho_j = ``params.rho[j]`` (no eq.opt_ro; for an objective
-        whose H_j is singular, where eq.opt_ro is undefined). Objectives with
-        column-rank-deficient rows always use the exact form.
+        whose H_j is singular, where eq.opt_ro is undefined); ``"carried"``:
+        as ``"power"``, but the rho_j* the warm start carries (the previous
+        step's, ``ADMMState.rho_star``) is used as it is, so a drive estimates
+        it only at its cold start and where a solve asked for a new estimate
+        (``rho_refresh``). Objectives with column-rank-deficient rows always
+        use the exact form.
+    rho_refresh : with ``rho_method="carried"``, a solve that did not converge
+        or took more than this many iterations passes no rho_j* on (its
+        state's ``rho_star`` is 0), so the next step estimates anew (default
+        100).
     rho_iterations : Lanczos steps of ``rho_method="power"`` (default 4,
         :data:`~ampc_jax.admm.rho.RHO_STEPS`; each applies H_j and H_j^-1 once).
     dual_residual : ``"slack"`` (default) tests ||Z_j^q - Z_j^(q-1)||^2 <= eps_s,
@@ -178,6 +202,25 @@ class LocalExplicit(ADMMSolver):
         gives rho_j ~ 1e-6 when the weights are per Nm^2 (vehicle examples): a
         fixed eps_s is then met while Z still moves by newtons.
         ``SolveResult.dual_residual`` reports the tested quantity.
+    finish : ``"none"`` (default, the paper's iteration) or ``"active_set"``:
+        on the start's slack active set (rows with Z_c = 0; a warm start's,
+        after ``finish_first`` iterations) and then every ``finish_every``
+        iterations where that set did not change in the last iteration, solve
+        the integrated problem with those rows as equalities exactly and check
+        its KKT conditions, with up to ``finish_corrections`` primal-dual
+        active-set steps (:mod:`~ampc_jax.admm.finish`). A verified finish
+        replaces the iterate (U_j its inputs, Z its slack, gamma kept) and
+        reports its own residuals: ``primal_residual`` the rows' violation
+        squared (objective j's rows), ``dual_residual`` 0 (stationarity holds
+        exactly); the solve stops when they pass eq.Convergence. A rejected
+        finish leaves the iterate as it was. Not for differentiation
+        (:meth:`solve_fixed` with a finish is forward only).
+    finish_every : iterations between finish attempts (default 8,
+        :data:`~ampc_jax.admm.finish.FINISH_EVERY`).
+    finish_first : iterations before the first attempt (default 0: the start's
+        own active set).
+    finish_corrections : primal-dual active-set steps per attempt (default 2,
+        :data:`~ampc_jax.admm.finish.FINISH_CORRECTIONS`).
 
     Use :meth:`solve` for deployment (early stop) and :meth:`solve_fixed` for
     differentiation (fixed iteration count under ``lax.scan``). Both are pure
@@ -205,6 +248,11 @@ class LocalExplicit(ADMMSolver):
     rho_method: str = "power"
     rho_iterations: int = RHO_STEPS
     dual_residual: str = "slack"
+    rho_refresh: int = 100
+    finish: str = "none"
+    finish_every: int = FINISH_EVERY
+    finish_first: int = 0
+    finish_corrections: int = FINISH_CORRECTIONS
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "max_iter", check_count(self.max_iter, "max_iter"))
@@ -215,7 +263,16 @@ class LocalExplicit(ADMMSolver):
         if self.kkt not in KKT_SOLVES:
             raise ValueError(f"kkt: expected one of {KKT_SOLVES}, got {self.kkt!r}")
         select_rho(self.rho_method, RHO_METHODS)
+        object.__setattr__(self, "rho_refresh", check_count(self.rho_refresh, "rho_refresh", 1))
         select_dual_residual(self.dual_residual, DUAL_RESIDUALS)
+        object.__setattr__(self, "finish_every", check_count(self.finish_every, "finish_every", 1))
+        object.__setattr__(self, "finish_first", check_count(self.finish_first, "finish_first", 0))
+        object.__setattr__(
+            self,
+            "finish_corrections",
+            check_count(self.finish_corrections, "finish_corrections", 0),
+        )
+        select_finish(self.finish, self.finish_every, self.finish_corrections)
         select_kkt(self.topology, self.kkt)  # validates the choice for this topology
         self.topology.check_local_explicit()
 
@@ -236,6 +293,11 @@ class LocalExplicit(ADMMSolver):
         return select_rho(self.rho_method, RHO_METHODS)
 
     @property
+    def finish_rule(self) -> Any:
+        """How a solve finishes (``finish`` resolved: :func:`~ampc_jax.admm.finish.select_finish`)."""
+        return select_finish(self.finish, self.finish_every, self.finish_corrections)
+
+    @property
     def dual_rule(self) -> Any:
         """The tested dual residual (``dual_residual`` resolved:
         :func:`~ampc_jax.admm.stopping.select_dual_residual`)."""
@@ -253,8 +315,18 @@ class LocalExplicit(ADMMSolver):
         return setup.Ain[j][own, :u], setup.b[j][:, own]
 
     # -- per-step setup -----------------------------------------------------------
-    def setup(self, data: ProblemData, params: SolverParams | None = None) -> LocalSetup:
-        """Build H_j, E_j, rho_j and factorise (once per control step)."""
+    def setup_from(
+        self, data: ProblemData, params: SolverParams | None, warm: ADMMState | None
+    ) -> LocalSetup:
+        """:meth:`setup` with the rho_j* ``warm`` carries (``rho_method="carried"``)."""
+        carried = None if warm is None else getattr(warm, "rho_star", None)
+        return self.setup(data, params, carried=carried)
+
+    def setup(
+        self, data: ProblemData, params: SolverParams | None = None, *, carried: Any = None
+    ) -> LocalSetup:
+        """Build H_j, E_j, rho_j and factorise (once per control step). ``carried``:
+        (J,) the rho_j* a warm start carries (``rho_method="carried"``; 0: none)."""
         T = self.topology
         lay = padded_layout(T)
         J, U = lay.cols.shape
@@ -273,16 +345,31 @@ class LocalExplicit(ADMMSolver):
         AtA = jnp.einsum("jcu,jcv->juv", Ain, Ain)
         own = tuple(self._own(j) for j in range(J))
         hessian = kkt.hessian(c, T)  # H_j and H_j^-1 (+ eps): the power iteration, the gap
+        iters = self.rho_iterations
+
+        def estimate_of(args: tuple) -> Any:
+            return eq_opt_ro_power(T, *args[:3], own, args[3], iters)
+
+        args = (c, Ain, AtA, hessian)
         rho_star = RhoEstimates(
-            estimate=lambda: eq_opt_ro_power(T, c, Ain, AtA, own, hessian, self.rho_iterations),
+            estimate=lambda: estimate_of(args),
             exact=lambda: eq_opt_ro_exact(T, c, Ain, AtA, own),
+            carried=None if carried is None else jnp.asarray(carried, dt),
+            estimate_of=estimate_of,
+            args=args,
         )
-        rho = self.rho_rule.rho(p.rho, rho_star)  # eq.opt_ro's rho_j* times params.rho
+        star = self.rho_rule.star(rho_star)  # eq.opt_ro's rho_j* (None: rho given)
+        rho = p.rho if star is None else p.rho * star
         # K_j = H_j + rho_j I (x) A_in,j'A_in,j, all objectives in one batched
         # factorisation; an iteration then applies it (a few matrix-vector products)
         Kinv = kkt.factor(c, rho[:, None, None] * AtA, N)
         KE = kkt.apply(Kinv, c.E)
         den = rho @ jnp.asarray(lay.carried, dt)
+        fd = None
+        if self.finish != "none":
+            P = jnp.asarray(lay.P, dt)
+            tol = default_tol(dt)
+            fd = finish_data(c.A, c.Bu, c.Qx, c.BH, c.E, P, data.Ain, data.bin, tol)
         return LocalSetup(
             Ain=Ain,
             b=b,
@@ -299,6 +386,8 @@ class LocalExplicit(ADMMSolver):
             E=c.E,
             hessian=hessian,
             b2=jnp.sum(b * b, axis=(1, 2)),
+            rho_star=jnp.zeros_like(rho) if star is None else star,
+            finish=fd,
         )
 
     # -- states ----------------------------------------------------------------------
@@ -442,7 +531,44 @@ class LocalExplicit(ADMMSolver):
         dz = self.dual_rule.dual(rho, mask(Zs - Z_old))  # eq.Convergence's s_j
         primal = jnp.sum(r * r, axis=(1, 2))
         dual = jnp.sum(dz * dz, axis=(1, 2))
-        return ADMMState(Uf.reshape(J, N, U), Z, gamma, st.iteration + 1, primal, dual)
+        return ADMMState(Uf.reshape(J, N, U), Z, gamma, st.iteration + 1, primal, dual, st.rho_star)
+
+    # -- the exact finish -------------------------------------------------------------
+    def finisher(self, setup: LocalSetup) -> Any:
+        """The exact finish (``finish="active_set"``; None otherwise): ``finish(before,
+        after, ran)`` tries the active set of ``after`` where it equals that of
+        ``before`` (it did not change in the last iteration), ``after`` ran and has
+        not converged; one decision per batch under vmap (:func:`~ampc_jax.admm.finish.attempt`)."""
+        if setup.finish is None:
+            return None
+
+        def finish(before: ADMMState, after: ADMMState, ran: Any) -> ADMMState:
+            active = after.Z <= 0
+            stable = jnp.all(active == (before.Z <= 0))
+            # a state without an inactive row (the cold start) has no set to try
+            due = ran & stable & jnp.any(~active) & ~self.converged(setup, after)
+            # only what the finish reads (the factors would be copied into the cond)
+            light = setup._replace(Ain=None, b=None, Kinv=None, KE=None, E=None, hessian=None)
+            return attempt(due, (light, after), self._finished, lambda a: a[1])
+
+        return finish
+
+    def _finished(self, args: tuple) -> ADMMState:
+        """The finish of ``new``'s active set: its state where verified, else ``new``."""
+        setup, new = args
+        lay = padded_layout(self.topology)
+        fd = setup.finish
+        dt = new.Z.dtype
+        nb = len(self.topology.box_rows)
+        u, nu, active, ok = finish_solve(fd, new.Z <= 0, nb, self.finish_corrections)
+        Uc = jnp.moveaxis(jnp.pad(u, ((0, 0), (0, 1)))[:, lay.cols], 1, 0)  # (J, N, U) copies
+        slack = fd.b - u @ fd.Ain.T
+        Z = jnp.where(active, 0.0, jnp.maximum(slack, 0.0))
+        r = Z - slack  # A u - b + Z: the violation on violated rows, else 0 (up to round-off)
+        primal = jnp.asarray(lay.carried, dt) @ jnp.sum(r * r, axis=0)
+        fin = new._replace(U=Uc, Z=Z, primal=primal, dual=jnp.zeros_like(new.dual))
+        keep = ok & self.converged(setup, fin)
+        return jax.tree.map(lambda a, b: jnp.where(keep, a, b), fin, new)
 
     def converged(self, setup: LocalSetup, state: ADMMState) -> Any:
         """eq.Convergence for every objective (see ``dual_residual``), with the
@@ -493,6 +619,9 @@ class LocalExplicit(ADMMSolver):
             jnp.where(conv, Status.SOLVED, Status.MAX_ITER_REACHED),
         ).astype(jnp.int32)
         u = jnp.where(finite, u, jnp.zeros_like(u))  # never a NaN out: status 2 says why
+        # the rho_j* passed on (rho_method="carried"): none after a slow or failed solve
+        fresh = conv & finite & (state.iteration <= self.rho_refresh)
+        state = state._replace(rho_star=jnp.where(fresh, setup.rho_star, 0.0))
         J = lay.cols.shape[0]
         Ain = setup.Ain[:, None]  # (J, 1, R, U)
         mu = jnp.sum(state.gamma[..., None] * Ain, axis=2).reshape(J, -1)  # Abar_j' gamma_j

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from ..closed_loop.config import FORMULATIONS
+from ..closed_loop.config import NO_MPC, loop_formulations
 from ..vehicle import SCENARIOS
 from ..vehicle.params import CONTROL_DT
 from .ticklog import (
@@ -45,6 +45,7 @@ from .ticklog import (
     JOURNAL_FILE,
     LOG_LOSS_COUNTS,
     MODES,
+    NOT_MEASURED,
     RUN_FILE,
     SKIP_KINDS,
     TICKS_FILE,
@@ -142,7 +143,7 @@ def check_run(log_dir: Path) -> CheckedRun:
     where = f"{log_dir}: {settings}"
     if meta["scenario"] not in SCENARIOS:
         raise RunLogError(f"{where}: 'scenario': {meta['scenario']!r:.60} is not a scenario")
-    if meta["formulation"] not in FORMULATIONS or meta["formulation"] == "none":
+    if meta["formulation"] not in loop_formulations() or meta["formulation"] == NO_MPC:
         raise RunLogError(
             f"{where}: 'formulation': {meta['formulation']!r:.60} is not a controller"
         )
@@ -213,12 +214,13 @@ def _check_rows(c: dict[str, np.ndarray], what: str) -> None:
     bad(~stepped & ~np.isnan(cmd).all(axis=1), "did not step, but has a command")
     bad(stepped & (c["iterations"] < 0), "stepped, but iterations {iterations}")
     bad(
-        ~stepped & ((c["iterations"] != -1) | (c["status"] != -1)), "did not step, but has a status"
+        ~stepped & ((c["iterations"] != NOT_MEASURED) | (c["status"] != NOT_MEASURED)),
+        "did not step, but has a status",
     )
     frames = c["bridge_tx_frames"]
     framed = np.stack([c[f"framed_{w}"] for w in WHEELS], axis=1)
     read = frames >= 0
-    bad(frames < -1, "bridge_tx_frames {bridge_tx_frames}")
+    bad(frames < NOT_MEASURED, "bridge_tx_frames {bridge_tx_frames}")
     bad(read & ~np.isfinite(framed).all(axis=1), "framed torques missing")
     bad(read & ~np.isin(c["bridge_mode"], MODES), "bridge_mode {bridge_mode!r}")
     bad(~read & ~(np.isnan(framed).all(axis=1) & (c["bridge_mode"] == "")), "framed, unread")

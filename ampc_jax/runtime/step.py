@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..closed_loop.config import SimConfig
+from ..closed_loop.config import NO_MPC, SimConfig
 from ..closed_loop.controller import Controller, controller_for
 from ..results import usable
 from ..vehicle.actuators import ACTUATORS, ActuatorLimits
@@ -113,8 +113,8 @@ class RuntimeStep:
     def __post_init__(self) -> None:
         if self.dtype not in ("float64", "float32"):
             raise ValueError(f"dtype: expected 'float64' or 'float32', got {self.dtype!r}")
-        if self.config.formulation == "none":
-            raise ValueError("formulation: the runtime needs a controller, got 'none'")
+        if not self.config.mpc:
+            raise ValueError(f"formulation: the runtime needs a controller, got {NO_MPC!r}")
         if self.dtype == "float64" and not jax.config.jax_enable_x64:
             raise ValueError("dtype: float64 needs jax_enable_x64 (jax.config.update)")
 

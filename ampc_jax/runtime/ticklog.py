@@ -44,6 +44,7 @@ __all__ = [
     "LOG_FORMAT",
     "LOG_LOSS_COUNTS",
     "MODES",
+    "NOT_MEASURED",
     "RUN_FILE",
     "SKIP_KINDS",
     "STATES",
@@ -135,10 +136,16 @@ class RunLogError(ValueError):
     """A run's logs that cannot be trusted or read (the message names the file)."""
 
 
+NOT_MEASURED = -1
+"""An integer column's value where nothing was measured: the iterations and status
+of a tick that did not step, the frame count of a tick that read none."""
+
+
 def new_row(tick: int, woke_ns: int, why: str = "", skip: str = "") -> dict[str, Any]:
-    """A tick's row with nothing measured yet: NaN numbers, -1 counts, empty strings."""
+    """A tick's row with nothing measured yet: NaN numbers, :data:`NOT_MEASURED`
+    counts, empty strings."""
     nan = float("nan")
-    empty = {"int": -1, "float": nan, "bool": False, "str": ""}
+    empty = {"int": NOT_MEASURED, "float": nan, "bool": False, "str": ""}
     row = {k: empty[kind] for k, kind in COLUMNS.items()}
     row.update(tick=tick, t=tick * CONTROL_DT, t_wake_ns=int(woke_ns), reason=why, skip=skip)
     return row

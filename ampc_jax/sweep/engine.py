@@ -40,7 +40,7 @@ from jax.sharding import NamedSharding, PartitionSpec
 
 from ..admm.core import ADMMSolver
 from ..admm.params import SolverParams
-from ..admm.runners import loop_parts, still_running
+from ..admm.runners import loop_parts, run_segment, still_running
 from ..problem.data import ProblemData
 from ..validation import check_count
 
@@ -142,6 +142,7 @@ def solve_pairs(
     segment: int = 16,
     min_bucket: int = 16,
     chunk: int | None = CHUNK,
+    refill: bool = False,
 ) -> tuple[PairResult, Work]:
     """Solve B pairs (leading axis of ``data`` and ``params``) on one device, to tolerance.
 
@@ -152,6 +153,9 @@ def solve_pairs(
     The setups (no loop) run over all B pairs at once; the iterations run on
     consecutive chunks of ``chunk`` pairs (:data:`CHUNK`; None: all B at once),
     one after the other under ``lax.map``, each compacted on its own.
+    ``refill`` True runs ``chunk`` slots (continuous batching): after each segment
+    a pair that has stopped hands its slot to the next waiting pair, so a slot
+    never idles while pairs wait (:func:`_iterate_refill`).
     Returns the per-pair :class:`PairResult` and the :class:`Work` done. Jittable.
     """
     solver = _check_solver(solver)
@@ -159,7 +163,11 @@ def solve_pairs(
     states = jax.vmap(solver.init)(setups)
     if chunk is not None and (isinstance(chunk, bool) or int(chunk) < 1):
         raise ValueError(f"chunk: expected an integer >= 1 or None, got {chunk!r}")
-    finals, work = _iterate(solver, setups, states, compaction, segment, min_bucket, chunk)
+    if refill:
+        slots = CHUNK if chunk is None else int(chunk)
+        finals, work = _iterate_refill(solver, setups, states, segment, slots)
+    else:
+        finals, work = _iterate(solver, setups, states, compaction, segment, min_bucket, chunk)
     res = jax.vmap(solver.result)(setups, finals)
     viol = jax.vmap(violation)(data, res.u)
     out = PairResult(
@@ -210,6 +218,99 @@ def _iterate(
     return finals, Work(jnp.sum(work.computed), jnp.sum(work.needed))
 
 
+def _parts_of(solver: ADMMSolver) -> tuple[Any, Any, Any]:
+    """(initial carry, segment of ``segment`` iterations, running) of ``solver`` on one pair."""
+
+    def iterate_of(carry: Any) -> Any:
+        return carry[0] if solver.anderson else carry
+
+    def carry_of(setup: Any, st: Any) -> Any:
+        return loop_parts(
+            lambda s: solver.step(setup, s), st, solver.anderson, solver.point, solver.at
+        )[0]
+
+    def running(setup: Any, carry: Any) -> Any:
+        return still_running(
+            iterate_of(carry), lambda s: solver.converged(setup, s), solver.max_iter
+        )
+
+    def segment_of(setup: Any, carry: Any, length: int) -> Any:
+        _, body, _ = loop_parts(
+            lambda s: solver.step(setup, s),
+            iterate_of(carry),
+            solver.anderson,
+            solver.point,
+            solver.at,
+        )
+        return run_segment(
+            body,
+            iterate_of,
+            lambda c: running(setup, c),
+            carry,
+            length,
+            finish=solver.finisher(setup),
+            anderson=solver.anderson,
+        )
+
+    return carry_of, segment_of, running
+
+
+def _iterate_refill(
+    solver: ADMMSolver, setups: Any, states: Any, segment: int, slots: int
+) -> tuple[Any, Work]:
+    """The final iterates of B pairs by continuous batching: ``slots`` pairs iterate
+    together in segments of ``segment`` iterations; after each segment the pairs
+    that stopped are written out and their slots take the next waiting pairs in
+    order. Each pair's iterations are its own (a stopped pair is frozen inside a
+    segment), so results match the unbatched solve; the work computed is slots x
+    segment per segment, idle only once no pair waits."""
+    B = int(np.shape(jax.tree.leaves(states)[0])[0])
+    C = max(1, min(int(slots), B))
+    seg = check_segment(segment)
+    carry_of, segment_of, running = _parts_of(solver)
+    iterate_of = (lambda c: c[0]) if solver.anderson else (lambda c: c)
+    carries = jax.vmap(carry_of)(setups, states)  # every pair's start, read when loaded
+    finals = jax.vmap(iterate_of)(carries)
+    idx0 = jnp.arange(C)
+    live0 = jnp.ones((C,), bool)
+
+    def cond(loop: tuple) -> Any:
+        return jnp.any(loop[2])
+
+    def body(loop: tuple) -> tuple:
+        carry, idx, live, nxt, finals, computed = loop
+        carry = jax.vmap(lambda s, c: segment_of(s, c, seg))(_take(setups, idx), carry)
+        done = live & ~jax.vmap(running)(_take(setups, idx), carry)
+        out = jnp.where(done, idx, B)  # B: out of range, dropped
+        finals = jax.tree.map(
+            lambda f, x: f.at[out].set(x, mode="drop"), finals, jax.vmap(iterate_of)(carry)
+        )
+        new = nxt + jnp.cumsum(done) - 1  # the next waiting pairs, in order
+        load = done & (new < B)
+        idx = jnp.where(load, new, idx)
+        live = jnp.where(done, load, live)
+        carry = _where_rows(load, _take(carries, jnp.minimum(idx, B - 1)), carry)
+        nxt = jnp.minimum(nxt + jnp.sum(done), B)
+        return carry, idx, live, nxt, finals, computed + jnp.asarray(C * seg, jnp.int32)
+
+    loop0 = (_take(carries, idx0), idx0, live0, jnp.asarray(C), finals, jnp.zeros((), jnp.int32))
+    _, _, _, _, finals, computed = jax.lax.while_loop(cond, body, loop0)
+    return finals, Work(computed, jnp.sum(finals.iteration))
+
+
+def _where_rows(go: Any, new: Any, old: Any) -> Any:
+    """Per leading-axis row: ``new`` where ``go``, else ``old``."""
+    return jax.tree.map(
+        lambda a, b: jnp.where(go.reshape((-1,) + (1,) * (a.ndim - 1)), a, b), new, old
+    )
+
+
+def check_segment(segment: Any) -> int:
+    if isinstance(segment, bool) or int(segment) < 1:
+        raise ValueError(f"segment: expected an integer >= 1, got {segment!r}")
+    return int(segment)
+
+
 def _iterate_all(
     solver: ADMMSolver,
     setups: Any,
@@ -243,11 +344,15 @@ def _iterate_all(
 
         def segment_of(setup: Any, carry: Any) -> Any:
             _, body, _ = parts(setup, iterate_of(carry))
-
-            def one(c: Any, _: Any) -> tuple[Any, None]:
-                return _where(running(setup, c), body(c), c), None
-
-            return jax.lax.scan(one, carry, None, length=seg)[0]
+            return run_segment(
+                body,
+                iterate_of,
+                lambda c: running(setup, c),
+                carry,
+                seg,
+                finish=solver.finisher(setup),
+                anderson=solver.anderson,
+            )
 
         carry0 = jax.vmap(lambda s, st: parts(s, st)[0])(setups, states)
         sizes = bucket_sizes(B, min_bucket)
@@ -324,6 +429,7 @@ def sweep_solve(
     segment: int = 16,
     min_bucket: int = 16,
     chunk: int | None = CHUNK,
+    refill: bool = False,
 ) -> tuple[PairResult, Work]:
     """:func:`solve_pairs` with the pair axis split over ``devices`` (default: all of
     ``jax.devices()``, every process's), by ``jax.shard_map``.
@@ -339,7 +445,9 @@ def sweep_solve(
     if B % len(devs):
         raise ValueError(f"pairs: {B} pairs do not split over {len(devs)} devices; pad them")
     chunk = None if chunk is None else int(chunk)
-    fn, mesh = _program(solver, tuple(devs), bool(compaction), int(segment), int(min_bucket), chunk)
+    fn, mesh = _program(
+        solver, tuple(devs), bool(compaction), int(segment), int(min_bucket), chunk, bool(refill)
+    )
     if jax.process_count() > 1:
         data, params = global_pairs(data, mesh), global_pairs(params, mesh)
     return fn(data, params)
@@ -353,12 +461,19 @@ def _program(
     segment: int,
     min_bucket: int,
     chunk: int | None = CHUNK,
+    refill: bool = False,
 ) -> tuple[Any, jax.sharding.Mesh]:
     """The jitted, sharded sweep program for one static configuration (compiled
     once per pair count and dtype, then reused by every chunk)."""
     mesh = _mesh(devices)
     spec = PartitionSpec("pairs")
-    kw = {"compaction": compaction, "segment": segment, "min_bucket": min_bucket, "chunk": chunk}
+    kw = {
+        "compaction": compaction,
+        "segment": segment,
+        "min_bucket": min_bucket,
+        "chunk": chunk,
+        "refill": refill,
+    }
 
     def local(d: Any, p: Any) -> tuple:
         out, work = solve_pairs(solver, d, p, **kw)

@@ -30,6 +30,9 @@ every process runs the same chunks (the program is collective), writes the
 rows of the pairs its own devices hold to ``chunk_NNNNN.pKofN.parquet``, and
 process 0 joins the parts after a barrier
 (``multihost_utils.sync_global_devices``).
+
+A ``shard`` (``--shard I/N``) computes chunks I, I + N, ... into a directory of
+its own and joins nothing; :func:`~ampc_jax.sweep.merge.merge_shards` joins them.
 """
 
 from __future__ import annotations
@@ -62,9 +65,18 @@ from . import memory, store
 from .engine import Work, pair_data, pair_params, sweep_solve
 from .families import StepCases, family
 from .memory import check_points
-from .store import chunk_name
+from .store import Shard, chunk_name
 
-__all__ = ["SweepSpec", "SweepSummary", "check_memory", "check_out", "rho_grid", "run_sweep"]
+__all__ = [
+    "SweepSpec",
+    "SweepSummary",
+    "check_memory",
+    "check_out",
+    "drawn",
+    "rho_grid",
+    "run_sweep",
+    "shard_chunks",
+]
 
 FORMAT = "ampc-sweep/1"
 
@@ -277,6 +289,23 @@ def _spec_dict(spec: SweepSpec) -> dict[str, Any]:
     return d
 
 
+def shard_chunks(spec: SweepSpec, n_dev: int, shard: Shard | None) -> tuple[int, range]:
+    """(cases per chunk, the chunks a run computes): every chunk of the layout on
+    ``n_dev`` devices, or ``shard``'s chunks of the layout of ``spec.chunk``
+    cases (ValueError ``shard:`` with fewer chunks than shards)."""
+    chunk, n_chunks = _layout(spec, n_dev if shard is None else 1)
+    return chunk, range(n_chunks) if shard is None else shard.chunks(n_chunks, chunk)
+
+
+def drawn(spec: SweepSpec, start: int, n: int) -> tuple[dict[str, np.ndarray], float]:
+    """The columns the family draws for cases ``start .. start + n - 1`` and the
+    ``tol`` the rows carry: what :func:`~ampc_jax.sweep.store.check_drawn`
+    checks a chunk of them against."""
+    fam = family(spec.family)
+    cases = fam.sample(n, spec.seed, start, **_sample_options(spec, fam))
+    return cases.columns, _tol(spec, cases)
+
+
 def _layout(spec: SweepSpec, n_dev: int) -> tuple[int, int]:
     """(cases per chunk, number of chunks): ``spec.chunk`` rounded up to a multiple
     of the device count, and never beyond the cases (no padding to a huge chunk)."""
@@ -296,10 +325,11 @@ def _sub_cases(chunk: int, points: int, n_dev: int, kind: str = "step") -> int:
     return -(-sub // n_dev) * n_dev
 
 
-def check_out(out: str | Path, spec: SweepSpec, n_dev: int) -> None:
-    """:func:`~ampc_jax.sweep.store.check_out` for ``spec`` on ``n_dev`` devices:
-    ValueError ``out: ...`` when ``out`` holds anything of another sweep."""
-    chunk, _ = _layout(spec, n_dev)
+def check_out(out: str | Path, spec: SweepSpec, n_dev: int, shard: Shard | None = None) -> None:
+    """:func:`~ampc_jax.sweep.store.check_out` for ``spec`` on ``n_dev`` devices
+    (``shard``: this run's): ValueError ``out: ...`` when ``out`` holds anything
+    of another sweep or shard."""
+    chunk, _ = shard_chunks(spec, n_dev, shard)
     store.check_out(
         out,
         _spec_dict(spec),
@@ -307,6 +337,7 @@ def check_out(out: str | Path, spec: SweepSpec, n_dev: int) -> None:
         points=len(spec.rho),
         chunk=chunk,
         processes=jax.process_count(),
+        shard=shard,
     )
 
 
@@ -338,6 +369,7 @@ def run_sweep(
     progress: bool | None = None,
     figures: bool = True,
     devices: Any = None,
+    shard: Shard | None = None,
 ) -> SweepSummary:
     """Run (or resume) the sweep ``spec`` into the directory ``out``; see the module docstring.
 
@@ -345,8 +377,9 @@ def run_sweep(
     single steps) on process 0, moved after every call of the program: None
     (default) on a terminal only, True always, False never. ``figures``: draw
     them (default True). ``devices``: the devices to shard over (default all,
-    every process's). Before anything runs, ``out`` is checked
-    (:func:`check_out`) and the memory estimated (:func:`check_memory`).
+    every process's). ``shard``: compute only that shard's chunks and join
+    nothing (one process; ``table`` None). Before anything runs, ``out`` is
+    checked (:func:`check_out`) and the memory estimated (:func:`check_memory`).
     """
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -357,11 +390,16 @@ def run_sweep(
     lead = jax.process_index() == 0
     fam = family(spec.family)
     if fam.kind == "loop" and jax.process_count() > 1:
-        raise ValueError("family: closed-loop sweeps run in one process (its devices sharded)")
+        raise ValueError(
+            "family: closed-loop sweeps run in one process (its devices sharded); "
+            "several machines run them as shards"
+        )
+    if shard is not None and jax.process_count() > 1:
+        raise ValueError("shard: a shard runs in one process (its devices sharded)")
     devs = list(jax.devices() if devices is None else devices)
     n_dev = len(devs)
-    check_out(out, spec, n_dev)
-    chunk, n_chunks = _layout(spec, n_dev)
+    chunk, ks = shard_chunks(spec, n_dev, shard)
+    check_out(out, spec, n_dev, shard)
     P = len(spec.rho)
     sub = _sub_cases(chunk, P, n_dev, fam.kind)
     options = _sample_options(spec, fam)
@@ -380,11 +418,12 @@ def run_sweep(
         "devices": n_dev,
         "processes": jax.process_count(),
         "platform": devs[0].platform,
+        **({} if shard is None else {"shard": list(shard)}),
     }
     if lead:
         (out / "sweep.json").write_text(json.dumps(meta, indent=2) + "\n")
     bar = tqdm(
-        total=spec.cases,
+        total=sum(min(chunk, spec.cases - k * chunk) for k in ks),
         unit="case",
         desc=f"sweep {spec.family}",
         disable=True if (progress is False or not lead) else (None if progress is None else False),
@@ -394,7 +433,7 @@ def run_sweep(
     run = skipped = 0
     computed = needed = 0
     topology_names: tuple[str, ...] = ()
-    for k in range(n_chunks):
+    for k in ks:
         start = k * chunk
         n = min(chunk, spec.cases - start)
         cases = fam.sample(n, spec.seed, start, **options)
@@ -444,16 +483,10 @@ def run_sweep(
     figs: list[Path] = []
     rows = 0
     if lead:
-        check_out(out, spec, n_dev)  # nothing foreign arrived while the chunks ran
-        paths = [out / "chunks" / name for k in range(n_chunks) for name in _chunk_names(k)]
-        tab = pa.concat_tables([store.read_chunk(p) for p in paths])
-        tab = tab.sort_by([("case", "ascending"), ("point", "ascending")])
-        pairs = tab.column("case").to_numpy() * P + tab.column("point").to_numpy()
-        if not np.array_equal(pairs, np.arange(spec.cases * P)):  # the parts' union
-            raise ValueError(
-                f"out: the chunks under {out / 'chunks'} hold {pairs.size} rows, not each of "
-                f"the {spec.cases} cases x {P} points once; remove them to compute them again"
-            )
+        check_out(out, spec, n_dev, shard)  # nothing foreign arrived while the chunks ran
+        paths = [out / "chunks" / name for k in ks for name in _chunk_names(k)]
+        ranges = [(k * chunk, min((k + 1) * chunk, spec.cases)) for k in ks]
+        tab = store.join_chunks(paths, ranges, P, str(out / "chunks"))
         meta.update(
             {
                 "objectives": list(topology_names),
@@ -467,15 +500,12 @@ def run_sweep(
                 "chunks_skipped": skipped,
             }
         )
-        tab = tab.replace_schema_metadata({"ampc": json.dumps(meta)})
-        table = out / "sweep.parquet"
-        pq.write_table(tab, table)
         rows = tab.num_rows
-        (out / "sweep.json").write_text(json.dumps(meta, indent=2) + "\n")
-        if figures:
-            from .figures import sweep_figures
-
-            figs = sweep_figures(tab, out)
+        if shard is None:
+            figs = store.write_table(tab, out, meta, figures=figures)
+            table = out / "sweep.parquet"
+        else:  # a shard's rows are joined by the merge
+            (out / "sweep.json").write_text(json.dumps(meta, indent=2) + "\n")
     return SweepSummary(
         out=out,
         table=table,

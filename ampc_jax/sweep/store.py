@@ -17,6 +17,14 @@ spec's), and a resumed sweep checks a chunk it skips against the cases it
 draws for it (:func:`check_drawn`: every drawn operating point, bit for bit);
 reason: a chunk of another seed's sweep given this sweep's record was
 accepted, and ``sweep.parquet`` mixed two seeds' operating points.
+
+Rule: a shard (:class:`Shard`, ``ampc sweep --shard I/N``) is the chunks
+``I, I + N, I + 2N, ...`` of the sweep's chunk layout, computed into a
+directory of its own under the spec's hash; its ``sweep.json`` says which
+shard it is, and a directory holding another shard, or the whole sweep, is
+refused (:func:`check_out`); reason: shards are array jobs on machines that
+share nothing but the spec, and their union must be the unsharded sweep
+(:mod:`~ampc_jax.sweep.merge` checks it before joining).
 """
 
 from __future__ import annotations
@@ -25,20 +33,61 @@ import hashlib
 import json
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 __all__ = [
     "META_KEY",
+    "Shard",
     "check_drawn",
     "check_out",
     "chunk_info",
     "chunk_name",
+    "join_chunks",
     "read_chunk",
+    "read_manifest",
+    "shard_of",
     "spec_hash",
+    "write_table",
 ]
 
 META_KEY = b"ampc_sweep"
 """The Parquet metadata key of a chunk's record: ``{"spec_hash", "chunk", "cases"}``."""
+
+
+class Shard(NamedTuple):
+    """Shard ``index`` of ``count`` (``ampc sweep --shard I/N``): the chunks
+    ``index, index + count, ...`` of the sweep's layout."""
+
+    index: int
+    count: int
+
+    @classmethod
+    def parse(cls, text: str) -> Shard:
+        """``I/N`` with 0 <= I < N (ValueError ``shard: ...`` otherwise)."""
+        i, sep, n = str(text).strip().partition("/")
+        try:
+            shard = cls(int(i), int(n)) if sep else None
+        except ValueError:
+            shard = None
+        if shard is None or not 0 <= shard.index < shard.count:
+            raise ValueError(
+                f"shard: expected I/N, shard I of N counted from 0 (0 <= I < N), got {text!r}"
+            )
+        return shard
+
+    def chunks(self, n_chunks: int, chunk: int) -> range:
+        """This shard's chunks of a layout of ``n_chunks`` chunks of ``chunk`` cases;
+        ValueError ``shard:`` when there are fewer chunks than shards (a shard
+        would compute nothing)."""
+        if self.count > n_chunks:
+            raise ValueError(
+                f"shard: {self.count} shards of a sweep of {n_chunks} chunk(s) of {chunk} "
+                f"cases: at most {n_chunks} shards (a smaller chunk makes more chunks)"
+            )
+        return range(self.index, n_chunks, self.count)
+
+    def __str__(self) -> str:
+        return f"{self.index}/{self.count}"
 
 
 def chunk_name(k: int, part: int = 0, parts: int = 1) -> str:
@@ -96,20 +145,42 @@ def read_chunk(path: Path) -> Any:
         ) from None
 
 
-def _manifest_spec(path: Path) -> dict[str, Any]:
+def read_manifest(path: Path, field: str = "out") -> dict[str, Any]:
+    """A ``sweep.json``: a JSON object with a ``spec`` object and, for a shard, a
+    ``shard`` ``[I, N]``; ValueError ``<field>: ...`` naming the file otherwise."""
     try:
         doc = json.loads(path.read_text())
     except (OSError, ValueError, RecursionError) as exc:  # UnicodeDecodeError: a ValueError
         raise ValueError(
-            f"out: {path} is not a sweep manifest ({_why(exc)}); remove it or choose another --out"
+            f"{field}: {path} is not a sweep manifest ({_why(exc)}); remove it or choose "
+            "another --out"
         ) from None
     have = doc.get("spec") if isinstance(doc, dict) else None
     if not isinstance(have, dict):
         raise ValueError(
-            f"out: {path} is not a sweep manifest (no 'spec' object); remove it or choose "
+            f"{field}: {path} is not a sweep manifest (no 'spec' object); remove it or choose "
             "another --out"
         )
-    return have
+    shard = doc.get("shard")
+    if shard is not None:
+        ok = isinstance(shard, list) and len(shard) == 2
+        ok = ok and all(isinstance(x, int) and not isinstance(x, bool) for x in shard)
+        if not (ok and 0 <= shard[0] < shard[1]):
+            raise ValueError(
+                f"{field}: {path} is not a sweep manifest ('shard' {shard!r} is not [I, N] "
+                "with 0 <= I < N)"
+            )
+    return doc
+
+
+def shard_of(doc: Mapping[str, Any]) -> Shard | None:
+    """The shard a manifest (:func:`read_manifest`) records, None for a whole sweep."""
+    shard = doc.get("shard")
+    return None if shard is None else Shard(*shard)
+
+
+def _what(shard: Shard | None) -> str:
+    return "the whole sweep" if shard is None else f"shard {shard}"
 
 
 def check_out(
@@ -120,34 +191,44 @@ def check_out(
     points: int,
     chunk: int,
     processes: int = 1,
+    shard: Shard | None = None,
 ) -> None:
     """Refuse (ValueError ``out: ...``) an output directory holding anything of another
-    sweep: a ``sweep.json`` of another spec or unreadable; under ``chunks/`` a file
-    that is not one of this sweep's chunks (``cases`` in chunks of ``chunk``,
-    written by ``processes``), unreadable, of another spec hash, of other cases, or
-    (one process) short of its ``cases x points`` rows."""
+    sweep: a ``sweep.json`` of another spec, of another shard (``shard``: this
+    run's, None for the whole sweep) or unreadable; under ``chunks/`` a file
+    that is not one of this sweep's (this shard's) chunks (``cases`` in chunks of
+    ``chunk``, written by ``processes``), unreadable, of another spec hash, of
+    other cases, or (one process) short of its ``cases x points`` rows."""
     out = Path(out)
     m = out / "sweep.json"
     if m.exists():
-        have = _manifest_spec(m)
+        doc = read_manifest(m)
+        have = doc["spec"]
         if have != dict(spec):
             diff = sorted(str(k) for k in set(spec) | set(have) if have.get(k) != spec.get(k))
             raise ValueError(
                 f"out: {out} holds a different sweep ({', '.join(diff)[:200]} differ); "
                 "choose another --out or remove it"
             )
+        if shard_of(doc) != shard:
+            raise ValueError(
+                f"out: {out} holds {_what(shard_of(doc))} of this sweep, this run is "
+                f"{_what(shard)}; give each shard, and the whole sweep, an --out of its own"
+            )
     folder = out / "chunks"
     if not folder.is_dir():
         return
     n_chunks = -(-cases // chunk)
-    expected = {chunk_name(k, p, processes): k for k in range(n_chunks) for p in range(processes)}
+    ks = range(n_chunks) if shard is None else shard.chunks(n_chunks, chunk)
+    expected = {chunk_name(k, p, processes): k for k in ks for p in range(processes)}
     mine = spec_hash(spec)
     for path in sorted(folder.glob("chunk_*.parquet")):
         k = expected.get(path.name)
         if k is None:
             raise ValueError(
-                f"out: {path} is not a chunk of this sweep ({n_chunks} chunk(s) of {chunk} "
-                f"cases in {processes} process(es)); remove it or choose another --out"
+                f"out: {path} is not a chunk of {'' if shard is None else f'shard {shard} of '}"
+                f"this sweep ({n_chunks} chunk(s) of {chunk} cases in {processes} "
+                "process(es)); remove it or choose another --out"
             )
         info = chunk_info(path)
         if info["spec_hash"] != mine:
@@ -277,3 +358,39 @@ def _range(cases: Any) -> str:
     if isinstance(cases, list) and len(cases) == 2 and all(isinstance(c, int) for c in cases):
         return f"{cases[0]}..{cases[1] - 1}"
     return "(none recorded)"
+
+
+def join_chunks(paths: list[Path], ranges: list[tuple[int, int]], points: int, where: str) -> Any:
+    """The rows of the chunk files ``paths`` as one pyarrow Table sorted by (case,
+    point), which must hold each case of ``ranges`` (``[start, stop)`` pairs) at
+    each of the ``points`` points exactly once; ValueError ``out:`` naming
+    ``where`` otherwise."""
+    import numpy as np
+    import pyarrow as pa
+
+    tab = pa.concat_tables([read_chunk(p) for p in paths])
+    tab = tab.sort_by([("case", "ascending"), ("point", "ascending")])
+    pairs = tab.column("case").to_numpy() * points + tab.column("point").to_numpy()
+    cases = np.concatenate([np.arange(a, b) for a, b in sorted(ranges)])
+    want = (cases[:, None] * points + np.arange(points)).ravel()
+    if not np.array_equal(pairs, want):  # the parts' union
+        raise ValueError(
+            f"out: the chunks under {where} hold {pairs.size} rows, not each of the "
+            f"{cases.size} cases x {points} points once; remove them to compute them again"
+        )
+    return tab
+
+
+def write_table(table: Any, out: Path, meta: Mapping[str, Any], *, figures: bool) -> list[Path]:
+    """``out/sweep.parquet`` (``meta`` in its schema metadata, key ``ampc``),
+    ``out/sweep.json`` and, where ``figures``, the figures; returns their paths."""
+    import pyarrow.parquet as pq
+
+    tab = table.replace_schema_metadata({"ampc": json.dumps(dict(meta))})
+    pq.write_table(tab, out / "sweep.parquet")
+    (out / "sweep.json").write_text(json.dumps(dict(meta), indent=2) + "\n")
+    if not figures:
+        return []
+    from .figures import sweep_figures
+
+    return sweep_figures(tab, out)

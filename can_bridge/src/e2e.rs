@@ -106,6 +106,10 @@ pub enum Check {
     /// E2E-valid, but a value lies outside its signal's DBC `[min|max]`
     /// (set by the bridge after decoding; the data is not used).
     Implausible,
+    /// In sequence, but its counter steps claim more time than has passed
+    /// since the last believed frame plus one cycle: a burst, or a sender
+    /// faster than its cycle (set by the bridge; the data is not used).
+    FasterThanCycle,
 }
 
 impl Check {
@@ -128,6 +132,7 @@ impl Check {
             Check::BadCrc => "wrong crc",
             Check::InvalidCounter => "counter 15",
             Check::Implausible => "implausible",
+            Check::FasterThanCycle => "faster than its cycle",
         }
     }
 }
@@ -234,8 +239,8 @@ pub enum PStatus {
     Repeated,
     /// The counter jumped, or was (re)anchored (Profile 1 WRONGSEQUENCE, INITIAL).
     WrongSequence,
-    /// The frame itself is broken (CRC, length, counter 15) or its values
-    /// implausible.
+    /// The frame itself is broken (CRC, length, counter 15), its values
+    /// implausible, or it came faster than its cycle.
     Error,
 }
 
@@ -243,15 +248,17 @@ impl Check {
     /// The Profile 1 status mapped onto the state machine's
     /// (`E2E_P01MapStatusToSM`, AUTOSAR 4.2 behaviour); the checks Profile 1
     /// leaves to the receiver map to `Error` (length, counter 15,
-    /// implausible) and `Repeated` (two sources).
+    /// implausible, faster than its cycle) and `Repeated` (two sources).
     pub fn p_status(self) -> PStatus {
         match self {
             Check::Ok | Check::OkSomeLost | Check::Sync => PStatus::Ok,
             Check::Repeated | Check::TwoSources => PStatus::Repeated,
             Check::Initial | Check::WrongSequence => PStatus::WrongSequence,
-            Check::BadLength | Check::BadCrc | Check::InvalidCounter | Check::Implausible => {
-                PStatus::Error
-            }
+            Check::BadLength
+            | Check::BadCrc
+            | Check::InvalidCounter
+            | Check::Implausible
+            | Check::FasterThanCycle => PStatus::Error,
         }
     }
 }
@@ -387,12 +394,12 @@ impl StateMachine {
         self.top = 0;
     }
 
+    /// Put `p` in the window's oldest slot (`top` is always below the window).
     fn add(&mut self, p: PStatus) {
-        let w = self.window();
-        if let Some(slot) = self.ring.get_mut(self.top % w) {
+        if let Some(slot) = self.ring.get_mut(self.top) {
             *slot = Some(p);
         }
-        self.top = (self.top + 1) % w;
+        self.top = (self.top + 1) % self.window();
     }
 
     /// (OK, errors) over the window.
@@ -456,11 +463,6 @@ impl StateMachine {
     /// The current state.
     pub fn state(&self) -> SmState {
         self.state
-    }
-
-    /// The last frame's check.
-    pub fn last(&self) -> Option<Check> {
-        self.last
     }
 
     /// Back to NODATA with an empty window (after a timeout).
@@ -693,6 +695,211 @@ mod tests {
             assert_ne!(sm.state(), SmState::Valid);
             sm.check(Check::Sync);
             assert_ne!(sm.state(), SmState::Valid);
+        }
+    }
+
+    #[test]
+    fn protection_writes_the_counter_nibble_and_the_crc_and_nothing_else() {
+        // byte 1's high nibble is payload: kept; the counter goes mod 15
+        let mut p = [0u8, 0xA7, 0x11, 0x22];
+        protect(&mut p, 0x0C11, 5);
+        assert_eq!((p[1], &p[2..]), (0xA5, &[0x11, 0x22][..]));
+        assert!(crc_ok(&p, 0x0C11));
+        assert_eq!(counter_of(&p), Some(5));
+        // the shortest protected payload: CRC and counter only
+        let mut p = [0u8, 0xF0];
+        protect(&mut p, 0x0C11, 16);
+        assert_eq!(p[1], 0xF1);
+        assert_eq!(p[0], p01_crc(0x0C11, &p));
+        assert!(crc_ok(&p, 0x0C11));
+        // nothing to protect in a shorter one
+        let mut p = [0x5Au8];
+        protect(&mut p, 0x0C11, 3);
+        assert_eq!(p, [0x5A]);
+        assert!(!crc_ok(&p, 0x0C11) && !crc_ok(&[], 0x0C11));
+        assert_eq!(counter_of(&p), None);
+    }
+
+    #[test]
+    fn a_two_byte_message_is_checked_like_any_other() {
+        let mut r = Receiver::new(0x0C13, 2, 2, 2);
+        let f = |c: u8| {
+            let mut p = [0u8, 0x30];
+            protect(&mut p, 0x0C13, c);
+            p
+        };
+        assert_eq!(r.check(&f(0)), Check::Initial);
+        assert_eq!(r.check(&f(1)), Check::Sync);
+        assert_eq!(r.check(&f(2)), Check::Ok);
+        assert_eq!(r.check(&f(2)[..1]), Check::BadLength);
+        assert_eq!(r.check(&[0u8, 0x34, 0]), Check::BadLength);
+    }
+
+    #[test]
+    fn receiver_settings_are_held_to_their_ranges() {
+        let id = 0x0C11;
+        // a largest step of 0 acts as 1, and a sync count of 0 as 1
+        let mut r = Receiver::new(id, 8, 0, 0);
+        assert_eq!(r.check(&mk(id, 0, 0)), Check::Initial);
+        assert_eq!(r.check(&mk(id, 1, 0)), Check::Ok);
+        assert_eq!(r.check(&mk(id, 3, 0)), Check::WrongSequence);
+        // a largest step of 20 acts as 14: any other counter is in sequence
+        let mut r = Receiver::new(id, 8, 20, 1);
+        assert_eq!(r.check(&mk(id, 0, 0)), Check::Initial);
+        assert_eq!(r.check(&mk(id, 14, 0)), Check::OkSomeLost);
+        // a sync count of 20 acts as 14: 13 SYNC frames, then data
+        let mut r = Receiver::new(id, 8, 2, 20);
+        r.check(&mk(id, 0, 0));
+        for c in 1..14 {
+            assert_eq!(r.check(&mk(id, c, 0)), Check::Sync, "{c}");
+        }
+        assert_eq!(r.check(&mk(id, 14, 0)), Check::Ok);
+    }
+
+    #[test]
+    fn the_first_frame_that_is_not_an_error_starts_a_sender_whatever_its_status() {
+        // AUTOSAR: NODATA -> INIT on any frame but an error, a second source
+        // included (it cannot contradict anything yet)
+        for c in [
+            Check::TwoSources,
+            Check::Repeated,
+            Check::Initial,
+            Check::Ok,
+        ] {
+            let mut sm = StateMachine::new(SmConfig::default());
+            assert_eq!(sm.check(c), SmState::Init, "{c:?}");
+        }
+        for c in [Check::BadCrc, Check::FasterThanCycle, Check::Implausible] {
+            let mut sm = StateMachine::new(SmConfig::default());
+            assert_eq!(sm.check(c), SmState::NoData, "{c:?}");
+        }
+    }
+
+    #[test]
+    fn a_sender_being_confirmed_may_have_one_error_not_two() {
+        let mut sm = StateMachine::new(SmConfig::default());
+        for c in [Check::Initial, Check::BadCrc, Check::Sync] {
+            assert_eq!(sm.check(c), SmState::Init, "{c:?}");
+        }
+        assert_eq!(sm.check(Check::Ok), SmState::Valid);
+        // the counts over the window: the error is gone, the window is OK
+        assert_eq!(sm.counts(), (8, 0));
+    }
+
+    #[test]
+    fn the_window_is_as_long_as_configured() {
+        // a window of 4 frames: an error leaves it after four more frames
+        let cfg = SmConfig {
+            window: 4,
+            min_ok_init: 2,
+            max_error_init: 1,
+            min_ok_valid: 3,
+            max_error_valid: 1,
+            min_ok_invalid: 4,
+            max_error_invalid: 0,
+        };
+        cfg.validate().unwrap();
+        let mut sm = StateMachine::new(cfg);
+        feed(&mut sm, Check::Ok, 6);
+        assert_eq!(sm.counts(), (4, 0));
+        sm.check(Check::BadCrc);
+        assert_eq!(sm.counts(), (3, 1));
+        assert_eq!(sm.state(), SmState::Valid);
+        feed(&mut sm, Check::Ok, 3);
+        assert_eq!(sm.counts(), (3, 1));
+        sm.check(Check::Ok);
+        assert_eq!(sm.counts(), (4, 0));
+        // a repeat is neither OK nor an error
+        sm.check(Check::Repeated);
+        assert_eq!(sm.counts(), (3, 0));
+        // windows beyond 16 act as 16, below 1 as 1
+        for (w, n) in [(40u8, 16u8), (0, 1)] {
+            let mut sm = StateMachine::new(SmConfig { window: w, ..cfg });
+            feed(&mut sm, Check::Ok, 30);
+            assert_eq!(sm.counts(), (n, 0), "window {w}");
+        }
+    }
+
+    #[test]
+    fn every_status_has_its_name_and_its_weight() {
+        use Check::*;
+        let all = [
+            (Ok, "ok", PStatus::Ok),
+            (OkSomeLost, "lost frames", PStatus::Ok),
+            (Sync, "sync", PStatus::Ok),
+            (Initial, "initial", PStatus::WrongSequence),
+            (WrongSequence, "wrong sequence", PStatus::WrongSequence),
+            (Repeated, "repeated", PStatus::Repeated),
+            (TwoSources, "two sources", PStatus::Repeated),
+            (BadLength, "wrong length", PStatus::Error),
+            (BadCrc, "wrong crc", PStatus::Error),
+            (InvalidCounter, "counter 15", PStatus::Error),
+            (Implausible, "implausible", PStatus::Error),
+            (FasterThanCycle, "faster than its cycle", PStatus::Error),
+        ];
+        for (c, name, p) in all {
+            assert_eq!((c.name(), c.p_status()), (name, p), "{c:?}");
+            assert_eq!(c.usable(), matches!(c, Ok | OkSomeLost), "{c:?}");
+        }
+    }
+
+    #[test]
+    fn sm_config_limits_are_inclusive() {
+        let d = SmConfig::default();
+        for (c, ok) in [
+            (SmConfig { window: 16, ..d }, true),
+            (SmConfig { window: 0, ..d }, false),
+            (
+                SmConfig {
+                    min_ok_valid: 8,
+                    ..d
+                },
+                true,
+            ),
+            (
+                SmConfig {
+                    min_ok_init: 0,
+                    ..d
+                },
+                false,
+            ),
+            (
+                SmConfig {
+                    min_ok_invalid: 0,
+                    ..d
+                },
+                false,
+            ),
+            (
+                SmConfig {
+                    min_ok_valid: 0,
+                    ..d
+                },
+                false,
+            ),
+            (
+                SmConfig {
+                    max_error_valid: 0,
+                    ..d
+                },
+                true,
+            ),
+            (
+                SmConfig {
+                    max_error_init: 8,
+                    ..d
+                },
+                true,
+            ),
+            (
+                SmConfig {
+                    max_error_invalid: 9,
+                    ..d
+                },
+                false,
+            ),
+        ] {
+            assert_eq!(c.validate().is_ok(), ok, "{c:?}");
         }
     }
 

@@ -275,6 +275,180 @@ mod tests {
     }
 
     #[test]
+    fn the_rate_bound_is_the_rate_times_the_time_plus_two_resolution_steps() {
+        // LongSpeed: 20 m/s^2 and 0.01 m/s steps; LatSpeed 50 m/s^2
+        let p = Plausibility::default();
+        let check = |prev: [f64; 4], new: [f64; 4], dt: f64| {
+            p.rate_violation(0, &VEHICLE_MOTION, &prev, &new, dt)
+        };
+        let allowed = 20.0 * 0.02 + 2.0 * 0.01;
+        // exactly the allowance, either way: physical; beyond it: not
+        assert_eq!(check([0.0; 4], [allowed, 0.0, 0.0, 0.0], 0.02), None);
+        assert_eq!(check([allowed, 0.0, 0.0, 0.0], [0.0; 4], 0.02), None);
+        let v = check([0.0; 4], [allowed + 1e-9, 0.0, 0.0, 0.0], 0.02);
+        assert_eq!(v, Some(("LongSpeed", 0.0, allowed + 1e-9)));
+        // a change across zero counts its whole size
+        assert!(check([0.3, 0.0, 0.0, 0.0], [-0.3, 0.0, 0.0, 0.0], 0.02).is_some());
+        // a small change far from zero is physical
+        assert_eq!(
+            check([10.0, 0.0, 0.0, 0.0], [10.1, 0.0, 0.0, 0.0], 0.02),
+            None
+        );
+        // the allowance grows with the time: 0.42 m/s in 20 ms, 0.82 in 40
+        assert_eq!(check([0.0; 4], [0.8, 0.0, 0.0, 0.0], 0.04), None);
+        assert!(check([0.0; 4], [0.83, 0.0, 0.0, 0.0], 0.04).is_some());
+        // each signal by its own rate and resolution: LatSpeed (50 m/s^2,
+        // 0.01 m/s) may move 1.02 m/s in 20 ms; the first offender is named
+        assert_eq!(check([0.0; 4], [0.0, 1.0, 0.0, 0.0], 0.02), None);
+        let v = check([0.0; 4], [0.0, 1.1, 0.0, 0.0], 0.02);
+        assert_eq!(v.map(|x| x.0), Some("LatSpeed"));
+        // no such message: nothing to say
+        assert_eq!(
+            p.rate_violation(N_RX, &VEHICLE_MOTION, &[0.0; 4], &[50.0; 4], 0.02),
+            None
+        );
+    }
+
+    #[test]
+    fn the_wheel_bound_is_the_road_speed_at_the_wheel_plus_the_tolerances() {
+        // |v_x| + |r| T/2 + (|v_y| + |r| a) |delta| + tol + rel |v_x|, each
+        // term with its own number so that each one counts
+        let p = Plausibility {
+            wheel_radius_m: 0.3,
+            track_m: 1.6,
+            cg_to_front_m: 1.2,
+            tolerance_mps: 0.5,
+            tolerance_rel: 0.05,
+            ..Plausibility::default()
+        };
+        let (vx, vy, r, delta) = (-20.0, 1.5, -0.8, 0.3);
+        let bound = 20.0 + 0.8 * 0.8 + (1.5 + 0.8 * 1.2) * 0.3 + 0.5 + 0.05 * 20.0;
+        let at = |v: f64| v / 0.3;
+        let free = [true, true, false, false];
+        let judge =
+            |w: [f64; 4], steer: Option<f64>| p.wheel_violation([vx, vy, r], &w, steer, free);
+        // just inside: physical, whatever the sign of the wheel speed
+        let inside = at(bound - 1e-6);
+        assert_eq!(judge([inside, -inside, 0.0, 0.0], Some(delta)), None);
+        // just outside on the second front wheel: that one, its speed and
+        // the bound
+        let (i, v, b) = judge([inside, at(bound + 1e-6), 0.0, 0.0], Some(-delta)).unwrap();
+        assert_eq!(i, 1);
+        assert!((v - (bound + 1e-6)).abs() < 1e-9, "{v}");
+        assert!((b - bound).abs() < 1e-9, "{b} {bound}");
+        // a driven wheel may spin
+        assert_eq!(judge([0.0, 0.0, at(90.0), at(90.0)], Some(delta)), None);
+        // exactly at the bound is physical (numbers exact in binary:
+        // 10 + 0.5 + 0.05 x 10 = 11 m/s, 22 rad/s at 0.5 m)
+        let p = Plausibility {
+            wheel_radius_m: 0.5,
+            ..p
+        };
+        assert_eq!(
+            p.wheel_violation([10.0, 0.0, 0.0], &[22.0; 4], Some(0.0), free),
+            None
+        );
+        assert!(p
+            .wheel_violation([10.0, 0.0, 0.0], &[22.001; 4], Some(0.0), free)
+            .is_some());
+        // no steering angle, or one beyond 1 rad: 1 rad
+        let wide = bound + (1.5 + 0.8 * 1.2) * 0.7;
+        for steer in [None, Some(-3.0)] {
+            let (_, _, b) = judge([at(wide + 1.0), 0.0, 0.0, 0.0], steer).unwrap();
+            assert!((b - wide).abs() < 1e-9, "{steer:?}: {b} {wide}");
+        }
+    }
+
+    #[test]
+    fn the_limits_of_every_setting_are_inclusive_and_named() {
+        // every rate: (0, MAX_RATE]
+        for m in 0..N_RX {
+            for name in signal_names(m) {
+                for (r, ok) in [
+                    (MAX_RATE, true),
+                    (1e-9, true),
+                    (MAX_RATE * 1.000_001, false),
+                    (0.0, false),
+                    (-1.0, false),
+                    (f64::NAN, false),
+                ] {
+                    let mut p = Plausibility::default();
+                    *p.rate_mut(name).unwrap() = r;
+                    match p.validate() {
+                        Ok(()) => assert!(ok, "{name} = {r} accepted"),
+                        Err(e) => {
+                            assert!(!ok, "{name} = {r} refused: {e}");
+                            assert!(e.contains(&format!("rx_max_rate.{name} = ")), "{e}");
+                        }
+                    }
+                }
+            }
+        }
+        // every geometry setting: [lo, hi]
+        for (key, lo, hi) in GEOMETRY {
+            let short = key.trim_start_matches("rx_wheels.");
+            for (v, ok) in [
+                (lo, true),
+                (hi, true),
+                (lo - 1e-9, false),
+                (hi + 1e-9, false),
+                (f64::NAN, false),
+            ] {
+                let mut p = Plausibility::default();
+                *p.geometry_mut(short).unwrap() = v;
+                match p.validate() {
+                    Ok(()) => assert!(ok, "{key} = {v} accepted"),
+                    Err(e) => {
+                        assert!(!ok, "{key} = {v} refused: {e}");
+                        assert!(e.starts_with(&format!("{key} = ")), "{e}");
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn each_setting_is_reached_by_its_own_name() {
+        for m in 0..N_RX {
+            for (i, name) in signal_names(m).into_iter().enumerate() {
+                let mut p = Plausibility::default();
+                *p.rate_mut(name).unwrap() = 123.0;
+                let mut want = Plausibility::default().max_rate;
+                want[m][i] = 123.0;
+                assert_eq!(p.max_rate, want, "{name}");
+            }
+        }
+        let fields = |p: &Plausibility| {
+            [
+                p.wheel_radius_m,
+                p.track_m,
+                p.cg_to_front_m,
+                p.tolerance_mps,
+                p.tolerance_rel,
+            ]
+        };
+        for (j, key) in [
+            "radius_m",
+            "track_m",
+            "cg_to_front_m",
+            "tolerance_mps",
+            "tolerance_rel",
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let mut p = Plausibility::default();
+            *p.geometry_mut(key).unwrap() = 0.123;
+            let mut want = fields(&Plausibility::default());
+            want[j] = 0.123;
+            assert_eq!(fields(&p), want, "{key}");
+        }
+        assert!(Plausibility::default().geometry_mut("spokes").is_none());
+        assert_eq!(signal_names(N_RX), Vec::<&str>::new());
+        assert_eq!(signal_names(2), ["SteeringAngle"]);
+    }
+
+    #[test]
     fn settings_are_validated_by_name() {
         let mut p = Plausibility::default();
         *p.rate_mut("YawRate").unwrap() = -1.0;

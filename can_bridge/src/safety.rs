@@ -740,3 +740,6 @@ mod tests {
         }
     }
 }
+
+#[cfg(test)]
+mod limits_tests;

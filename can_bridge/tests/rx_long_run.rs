@@ -1,11 +1,22 @@
 //! A long randomised run of the receive side (`RxStore`): five healthy
-//! sensors at 20 ms, with faults injected at random rates in random
+//! sensors, each once every 20 ms at a random point of the cycle (up to a
+//! cycle of jitter), with faults injected at random rates in random
 //! segments: frames lost, repeated (frozen), bad CRC, wrong length, counter
 //! 15, an intruder's out-of-sequence pair, a second source repeating the last
-//! counter with other data, implausible values, gaps longer than the state
-//! timeout. Checked on every input:
+//! counter with other data, implausible values, a burst of 3 to 8 frames in
+//! sequence within 0.1 ms, gaps longer than the state timeout. Checked on
+//! every input:
 //!
 //! * nothing panics;
+//! * a sensor's own frames keep pace (never `FasterThanCycle`) once no
+//!   fault has touched its identifier for 1.5 s, and bursts are caught. (A
+//!   fault in sequence with the receiver, a burst or a frozen frame that
+//!   anchors the counter, moves the time the counters claim, up to one
+//!   cycle ahead of the arrivals: the sensor's next frames may claim too
+//!   much until their counter steps resynchronise, 15 frames at most, and a
+//!   sensor jittering by up to a cycle, as here, may come early against
+//!   that lead until the 2 % give-back has taken it back, 50 cycles at
+//!   most.)
 //! * a reported value is always one a healthy sensor sent (healthy values
 //!   walk within [0, 40) at physical rates; every faulty frame carries a
 //!   value in [60, 89]);
@@ -67,8 +78,9 @@ fn reported(st: &can_bridge::VehicleState) -> [Option<f64>; N_RX] {
     ]
 }
 
-/// Returns (inputs, valid samples) for a reproducible seed.
-fn run(inputs: u64, seed: u64) -> (u64, u64) {
+/// Returns (inputs, valid samples, burst frames faster than their cycle,
+/// own frames checked for pace) for a reproducible seed.
+fn run(inputs: u64, seed: u64) -> (u64, u64, u64, u64) {
     let timeout = 250 * MS;
     // The wheel/vehicle speed check is off here (the messages carry
     // independent values); rates and everything else are the defaults.
@@ -83,7 +95,9 @@ fn run(inputs: u64, seed: u64) -> (u64, u64) {
     let mut seen_at = [0u64; N_RX];
     let mut walk = [20.0f64; N_RX];
     let mut rng = Rng(seed | 1);
-    let mut now = 1_000 * MS;
+    let mut cycle_start = 1_000 * MS;
+    // this cycle's (time, message), latest first
+    let mut slots: Vec<(u64, usize)> = Vec::new();
     let mut counter = [0u8; N_RX];
     // The counter the receiver last anchored or accepted (what a fault must
     // be out of sequence with, or equal to, to be a fault at all).
@@ -92,15 +106,27 @@ fn run(inputs: u64, seed: u64) -> (u64, u64) {
     let mut fault_rate = 0.0;
     let mut n = 0u64;
     let mut valid = 0u64;
+    let mut burst_faults = 0u64;
+    // when a fault last touched each message; own frames checked for pace
+    let mut fault_at = [0u64; N_RX];
+    let mut paced = 0u64;
     while n < inputs {
         if rng.below(500) == 0 {
             fault_rate = [0.0, 0.02, 0.1, 0.5, 0.9][rng.below(5) as usize];
         }
-        if rng.below(3000) == 0 {
-            now += 300 * MS; // a gap longer than the state timeout
+        if slots.is_empty() {
+            cycle_start += 20 * MS;
+            if rng.below(600) == 0 {
+                cycle_start += 300 * MS; // a gap longer than the state timeout
+            }
+            slots = (0..N_RX)
+                .map(|m| (cycle_start + rng.below(200) * MS / 10, m))
+                .collect();
+            slots.sort_unstable_by(|a, b| b.cmp(a));
         }
-        now += 20 * MS / N_RX as u64;
-        let m = rng.below(N_RX as u64) as usize;
+        let Some((now, m)) = slots.pop() else {
+            continue;
+        };
         // a random walk of 0.1 a frame: within every signal's rate
         walk[m] = (walk[m] + [-0.1, 0.0, 0.1][rng.below(3) as usize]).clamp(0.0, 39.9);
         let good_value = (walk[m] * 10.0).round() / 10.0;
@@ -108,8 +134,19 @@ fn run(inputs: u64, seed: u64) -> (u64, u64) {
             since_two[m] = u64::MAX;
         }
         let bad_value = 60.0 + (rng.unit() * 29.0).round();
-        let mut feed = |rx: &mut RxStore, f: &CanFrame| {
-            let c = rx.on_frame(f, now);
+        let faulty = rng.unit() < fault_rate;
+        if faulty {
+            fault_at[m] = now;
+        }
+        let clean = now > fault_at[m] + 1_500 * MS;
+        // feed one frame `late` ns after the slot; `own`: the sensor's own
+        let mut feed_at = |rx: &mut RxStore, f: &CanFrame, own: bool, late: u64| {
+            let c = rx.on_frame(f, now + late);
+            paced += u64::from(own && clean);
+            assert!(
+                !(own && clean && c == Check::FasterThanCycle),
+                "input {n}: a frame of the sensor's own, once a cycle, came faster than its cycle"
+            );
             if !matches!(c, Check::BadCrc | Check::BadLength) {
                 seen_at[m] = now;
             }
@@ -119,51 +156,85 @@ fn run(inputs: u64, seed: u64) -> (u64, u64) {
                 since_two[m].saturating_add(1)
             };
             n += 1;
+            c
         };
-        if rng.unit() >= fault_rate {
+        if !faulty {
             counter[m] = (counter[m] + 1) % 15;
-            feed(&mut rx, &frame(m, good_value, counter[m]));
+            feed_at(&mut rx, &frame(m, good_value, counter[m]), true, 0);
             sent[m] = counter[m];
             last_good[m] = good_value;
         } else {
-            let kind = rng.below(8);
+            let kind = rng.below(9);
             match kind {
                 0 => counter[m] = (counter[m] + 1) % 15, // lost: nothing arrives
-                1 => feed(&mut rx, &frame(m, last_good[m].max(0.0), sent[m])), // repeat
+                1 => {
+                    // repeat
+                    feed_at(&mut rx, &frame(m, last_good[m].max(0.0), sent[m]), false, 0);
+                }
                 2 => {
                     let mut d = frame(m, bad_value, (counter[m] + 1) % 15).data().to_vec();
                     d[2] ^= 0x5A;
-                    feed(
+                    feed_at(
                         &mut rx,
                         &CanFrame::new(0x201 + m as u32, false, &d).unwrap(),
+                        false,
+                        0,
                     );
                 }
-                3 => feed(
-                    &mut rx,
-                    &CanFrame::new(0x201 + m as u32, false, &[0; 3]).unwrap(),
-                ),
+                3 => {
+                    feed_at(
+                        &mut rx,
+                        &CanFrame::new(0x201 + m as u32, false, &[0; 3]).unwrap(),
+                        false,
+                        0,
+                    );
+                }
                 4 => {
                     let mut d = frame(m, bad_value, 0).data().to_vec();
                     d[1] |= 0x0F;
                     d[0] = can_bridge::e2e::p01_crc(RX_MESSAGES[m].data_id, &d);
-                    feed(
+                    feed_at(
                         &mut rx,
                         &CanFrame::new(0x201 + m as u32, false, &d).unwrap(),
+                        false,
+                        0,
                     );
                 }
                 5 => {
                     // an intruder's pair, out of sequence (jump of 3..=12)
                     let c = (sent[m] + 3 + rng.below(10) as u8) % 15;
-                    feed(&mut rx, &frame(m, bad_value, c));
-                    feed(&mut rx, &frame(m, bad_value, (c + 1) % 15));
+                    feed_at(&mut rx, &frame(m, bad_value, c), false, 0);
+                    feed_at(&mut rx, &frame(m, bad_value, (c + 1) % 15), false, 0);
                     sent[m] = (c + 1) % 15;
                 }
-                6 => feed(&mut rx, &frame(m, bad_value, sent[m])), // second source
+                6 => {
+                    // second source
+                    feed_at(&mut rx, &frame(m, bad_value, sent[m]), false, 0);
+                }
+                7 => {
+                    // a burst: 3 to 8 frames in sequence within 0.1 ms, the
+                    // counter +1 or +2 each (+2 at most 6, so that the
+                    // sensor's next frame is out of sequence with it), with
+                    // the sensor's value (what an intruder bursting ahead of
+                    // it would send)
+                    let step = 1 + rng.below(2) as u8;
+                    let k = if step == 1 {
+                        3 + rng.below(6)
+                    } else {
+                        3 + rng.below(4)
+                    };
+                    for j in 0..k {
+                        sent[m] = (sent[m] + step) % 15;
+                        let f = frame(m, good_value, sent[m]);
+                        let c = feed_at(&mut rx, &f, false, j * 10_000);
+                        burst_faults += u64::from(c == Check::FasterThanCycle);
+                    }
+                }
                 _ => {
                     // implausible: beyond the DBC's bounds (wheel speed < -60 etc.)
                     counter[m] = (counter[m] + 1) % 15;
                     let v = [120.0, -100.0, -150.0, 120.0, -200.0][m];
-                    feed(&mut rx, &frame(m, v, counter[m]));
+                    feed_at(&mut rx, &frame(m, v, counter[m]), true, 0);
                     sent[m] = counter[m];
                 }
             }
@@ -185,17 +256,19 @@ fn run(inputs: u64, seed: u64) -> (u64, u64) {
             );
         }
     }
-    (n, valid)
+    (n, valid, burst_faults, paced)
 }
 
 #[test]
 fn randomised_receive_run() {
-    let (n, valid) = run(30_000, 0x5EED);
+    let (n, valid, burst_faults, paced) = run(30_000, 0x5EED);
     assert!(n >= 30_000);
     assert!(
         valid > 1_000,
         "the healthy stretches must be valid ({valid})"
     );
+    assert!(burst_faults > 10, "bursts must be caught ({burst_faults})");
+    assert!(paced > 3_000, "own frames checked for pace: {paced}");
 }
 
 #[test]
@@ -209,7 +282,7 @@ fn long_randomised_receive_run() {
     let mut total = 0;
     let mut valid = 0;
     for seed in 1..=4u64 {
-        let (n, v) = run(inputs / 4, seed * 0x9E37_79B9);
+        let (n, v, _, _) = run(inputs / 4, seed * 0x9E37_79B9);
         total += n;
         valid += v;
     }

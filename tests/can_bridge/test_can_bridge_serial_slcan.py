@@ -66,10 +66,11 @@ def test_serial_adapter_init_frames_and_receive() -> None:
             active = [f for f in frames if f["mode"] == "active"]
             assert active and active[-1]["torques"] == (-8.0, 0.0, -8.0, 100.0)
             # The adapter reports a received frame (lower-case hex, with a Z1 timestamp).
-            data = protect("SteeringState", STEER, 0)
+            # one frame per 20 ms cycle (faster ones are a fault: the pace rule)
             for c in range(3):
                 data = protect("SteeringState", STEER, c)
                 adapter.send_line(b"t2034" + data.hex().encode() + b"1A2B\r")
+                time.sleep(0.02)
             end = time.monotonic() + budget(2)
             while bridge.latest_state()["steering_angle_rad"] is None and time.monotonic() < end:
                 time.sleep(0.02)

@@ -47,6 +47,7 @@ def test_every_option_states_its_default():
         "export",
         "replay",
         "sweep",
+        "sweep-merge",
         "tune",
     }
     assert len(options) > 30

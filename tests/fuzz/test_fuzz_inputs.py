@@ -277,6 +277,9 @@ def _sweep_dir(out: Path) -> None:
             "case": [c for c in cases for _ in range(2)],
             "point": [0, 1] * 3,
             "rho_scale": [0.5, 2.0] * 3,
+            "family": [SPEC.family] * 6,
+            "formulation": [SPEC.formulation] * 6,
+            "seed": [SPEC.seed] * 6,
         }
         record = {"spec_hash": store.spec_hash(spec), "chunk": k, "cases": [3 * k, 3 * k + 3]}
         table = pa.table(cols).replace_schema_metadata({store.META_KEY: json.dumps(record)})

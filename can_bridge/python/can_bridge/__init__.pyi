@@ -86,6 +86,7 @@ class Stats(TypedDict):
     rx_implausible: int
     rx_implausible_rate: int
     rx_inconsistent: int
+    rx_faster_than_cycle: int
     rx_discarded: int
     rx_length_errors: int
     rx_malformed: int

@@ -1,9 +1,10 @@
 //! The receive loop and the received vehicle state. Each frame of a
 //! received message goes through, in order: its length and E2E Profile 1
-//! CRC and counter (`e2e::Receiver`); its values' DBC range, rate of change
-//! and, for the speeds, wheel-against-vehicle consistency
-//! (`plausibility`); then the message's AUTOSAR E2E state machine
-//! (`e2e::StateMachine`). A usable frame's values are believed only once
+//! CRC and counter (`e2e::Receiver`); its pace (the time its counter steps
+//! claim against the time that actually passed, [`RxSlotState::keeps_pace`]);
+//! its values' DBC range, rate of change and, for the speeds,
+//! wheel-against-vehicle consistency (`plausibility`); then the message's
+//! AUTOSAR E2E state machine (`e2e::StateMachine`). A usable frame's values are believed only once
 //! they have stood for `confirm_ns` with no sign of a second sender on the
 //! identifier (a repeated counter with other data, a counter jump, a
 //! restart): a frame an intruder slips in ahead of the real sender is
@@ -13,7 +14,7 @@
 use super::{lock, Shared};
 use crate::candump::{Dir, LogSender};
 use crate::codec::{N_RX, RX_MESSAGES};
-use crate::e2e::{Check, Receiver, SmConfig, SmState, StateMachine};
+use crate::e2e::{Check, Receiver, SmConfig, StateMachine};
 use crate::frame::CanFrame;
 use crate::plausibility::Plausibility;
 use crate::scheduler::{monotonic_ns, realtime_ns};
@@ -26,6 +27,11 @@ const RX_POLL_MS: i32 = 20;
 
 /// Usable frames kept per message while they wait to be believed.
 const PENDING: usize = 16;
+
+/// A sender's clock may run this fraction fast (1/50: 2 %) before its frames
+/// come faster than their cycle; crystal and resonator clocks are within
+/// 0.5 %.
+const PACE_TOLERANCE_DIV: u64 = 50;
 
 /// Indices into [`RX_MESSAGES`].
 const MOTION: usize = 0;
@@ -68,6 +74,20 @@ impl Default for RxConfig {
     }
 }
 
+/// The pace rule's state: the time the sender's counters claim.
+#[derive(Debug, Clone, Copy)]
+struct Pace {
+    /// When the last frame in sequence was sent, by its counters: the
+    /// claimed time of the one before plus its counter steps times the
+    /// message's cycle, on the receiver's clock, ns (its arrival if it came
+    /// faster than its cycle, or anchored the counter).
+    claimed_ns: u64,
+    /// That frame's arrival, ns.
+    at_ns: u64,
+    /// That frame's alive counter.
+    counter: u8,
+}
+
 #[derive(Debug, Clone)]
 struct RxSlotState {
     receiver: Receiver,
@@ -81,6 +101,8 @@ struct RxSlotState {
     /// The rate check's reference: the last usable, plausible frame
     /// (arrival, counter if known, values).
     reference: Option<(u64, Option<u8>, [f64; 4])>,
+    /// The time the counters claim (`None` until a counter is anchored).
+    pace: Option<Pace>,
 }
 
 impl RxSlotState {
@@ -111,6 +133,84 @@ impl RxSlotState {
         self.pending.clear();
         self.reference = self.believed.map(|(t, v)| (t, None, v));
     }
+
+    /// The pace rule: the time a frame's counter claims is bounded by the
+    /// time that actually passed. Each frame in sequence (OK, OKSOMELOST,
+    /// SYNC) claims its counter steps (modulo 15, at least one) times the
+    /// message's `cycle` after the frame before; the claims add up on a
+    /// clock that starts a cycle before the anchoring frame's arrival (it
+    /// may have come late), never lags the
+    /// last believed frame's arrival (a silence or a late frame widens
+    /// nothing beyond the time that passed since), and gives back a lead
+    /// over the arrival times at 2 % of the time that passes (a sender's
+    /// clock may run that much fast). A frame whose claim lands more than
+    /// one cycle after its own arrival came faster than its cycle: it is a
+    /// fault, and the clock restarts at its arrival. So a frame's claim
+    /// since the last believed frame is at most the time that passed since
+    /// plus one cycle, however the counters step and however fast the
+    /// frames come (a burst alternates faults and frames that claim from
+    /// the last fault's arrival, whose rate check falls back to the last
+    /// believed frame), and the rate check (the longer of the arrival gap
+    /// and the counter steps times the cycle) allows no more change than
+    /// that time does. Returns whether the frame kept pace, or else the
+    /// counter steps it claimed and the time since the frame before, ns.
+    fn keeps_pace(
+        &mut self,
+        check: Check,
+        counter: u8,
+        now: u64,
+        cycle: u64,
+    ) -> Result<(), (u64, u64)> {
+        let fresh = Pace {
+            claimed_ns: now,
+            at_ns: now,
+            counter,
+        };
+        match check {
+            // The anchor itself may have come up to a cycle late (a receiver
+            // busy when a stream starts): it claims to have been sent a cycle
+            // before its arrival. No value is believed yet to bound by it.
+            Check::Initial => {
+                self.pace = Some(Pace {
+                    claimed_ns: now.saturating_sub(cycle),
+                    ..fresh
+                });
+                return Ok(());
+            }
+            Check::Ok | Check::OkSomeLost | Check::Sync | Check::WrongSequence => {}
+            _ => return Ok(()),
+        }
+        let p = *self.pace.get_or_insert(fresh);
+        let elapsed = now.saturating_sub(p.at_ns);
+        // A jump re-anchors the counter: its steps tell nothing of the time,
+        // so it claims none (and keeps any lead).
+        let steps = if check == Check::WrongSequence {
+            0
+        } else {
+            u64::from((counter + 15 - p.counter) % 15).max(1)
+        };
+        let believed = self.believed.map_or(0, |(t, _)| t);
+        let claimed = p.claimed_ns.max(believed).saturating_add(steps * cycle);
+        // a lead over the arrival (claimed - now, if any) gives back 2 % of
+        // the time since the frame before
+        let claimed = claimed
+            .min(now)
+            .max(claimed.saturating_sub(elapsed / PACE_TOLERANCE_DIV));
+        if claimed > now.saturating_add(cycle) {
+            // The clock restarts at this frame: it claims nothing, and
+            // neither does an anchor that came late (a sender catching up,
+            // a receiver that stalled on a stream's first frame) keep every
+            // later frame of a sound sender early.
+            self.pace = Some(fresh);
+            return Err((steps, elapsed));
+        }
+        self.pace = Some(Pace {
+            claimed_ns: claimed,
+            at_ns: now,
+            counter,
+        });
+        Ok(())
+    }
 }
 
 /// Receive-side state and counters.
@@ -129,6 +229,7 @@ pub struct RxStore {
     pub(super) rx_implausible: u64,
     pub(super) rx_implausible_rate: u64,
     pub(super) rx_inconsistent: u64,
+    pub(super) rx_faster_than_cycle: u64,
     pub(super) rx_discarded: u64,
     pub(super) rx_length_errors: u64,
     pub(super) rx_malformed: u64,
@@ -161,6 +262,7 @@ impl RxStore {
                     pending: VecDeque::with_capacity(PENDING),
                     believed: None,
                     reference: None,
+                    pace: None,
                 })
                 .collect(),
             rx_frames: 0,
@@ -174,6 +276,7 @@ impl RxStore {
             rx_implausible: 0,
             rx_implausible_rate: 0,
             rx_inconsistent: 0,
+            rx_faster_than_cycle: 0,
             rx_discarded: 0,
             rx_length_errors: 0,
             rx_malformed: 0,
@@ -182,11 +285,6 @@ impl RxStore {
             bus_errors: 0,
             last_error: None,
         }
-    }
-
-    /// The configuration.
-    pub fn config(&self) -> &RxConfig {
-        &self.cfg
     }
 
     /// The latest usable values of message `m` no older than the state
@@ -287,6 +385,21 @@ impl RxStore {
             }
             v
         };
+        // The pace rule, on every frame whose counter the receiver took.
+        let counter = crate::e2e::counter_of(f.data()).unwrap_or(0);
+        let cycle = u64::from(m.cycle_ms) * 1_000_000;
+        if let Some(slot) = self.slots.get_mut(i) {
+            if let Err((steps, elapsed)) = slot.keeps_pace(verdict, counter, now_ns, cycle) {
+                verdict = Check::FasterThanCycle;
+                self.last_error = Some(format!(
+                    "{}: counter step {steps} ({} ms) {:.1} ms after the frame before comes faster than its {} ms cycle",
+                    m.name,
+                    steps * u64::from(m.cycle_ms),
+                    elapsed as f64 / 1e6,
+                    m.cycle_ms
+                ));
+            }
+        }
         let mut values = [0.0; 4];
         if verdict.usable() {
             m.decode_values(f.data(), &mut values);
@@ -310,7 +423,7 @@ impl RxStore {
         };
         if matches!(
             verdict,
-            Check::TwoSources | Check::WrongSequence | Check::Initial
+            Check::TwoSources | Check::WrongSequence | Check::Initial | Check::FasterThanCycle
         ) {
             self.rx_discarded += slot.pending.len() as u64;
             slot.discard_pending();
@@ -331,6 +444,7 @@ impl RxStore {
             Check::BadCrc => self.rx_crc_errors += 1,
             Check::BadLength => self.rx_length_errors += 1,
             Check::Implausible => self.rx_implausible += 1,
+            Check::FasterThanCycle => self.rx_faster_than_cycle += 1,
             Check::Repeated => {
                 self.rx_repeated += 1;
                 self.rx_counter_errors += 1;
@@ -365,8 +479,9 @@ impl RxStore {
                 .is_some_and(|t| now_ns.saturating_sub(t) <= timeout);
             *st = match (b, slot.sm.verdict()) {
                 (_, Err(why)) if fresh || b.is_none() => why,
-                (None, Ok(())) if slot.sm.state() == SmState::Valid => "confirming",
-                (None, _) => "no data",
+                // sound (the state machine says VALID), the first usable
+                // frame still being confirmed
+                (None, _) => "confirming",
                 (Some((t, _)), _) if now_ns.saturating_sub(*t) > timeout => "timeout",
                 (Some(_), Err(why)) => why,
                 (Some(_), Ok(())) => "ok",
@@ -479,6 +594,12 @@ pub fn run_rx(
 }
 
 #[cfg(test)]
+mod pace_tests;
+
+#[cfg(test)]
+mod store_tests;
+
+#[cfg(test)]
 mod tests {
     use super::super::testutil::MS;
     use super::*;
@@ -486,12 +607,12 @@ mod tests {
         DRIVER_DEMAND, STEERING_STATE, VEHICLE_ACCEL, VEHICLE_MOTION, WHEEL_SPEEDS,
     };
 
-    const CYCLE: u64 = 20 * MS;
-    const T0: u64 = 10_000 * MS;
+    pub(super) const CYCLE: u64 = 20 * MS;
+    pub(super) const T0: u64 = 10_000 * MS;
 
     /// Healthy values, physically consistent: 12.34 m/s, front wheels
     /// rolling at that speed (35.2 rad/s at R = 0.351 m), rear ones driving.
-    fn healthy(m: usize) -> Vec<f64> {
+    pub(super) fn healthy(m: usize) -> Vec<f64> {
         match m {
             0 => vec![12.34, -0.5, 0.25],
             1 => vec![35.1, 35.2, 40.3, 40.4],
@@ -501,7 +622,7 @@ mod tests {
         }
     }
 
-    fn frame_of(m: usize, values: &[f64], c: u8) -> CanFrame {
+    pub(super) fn frame_of(m: usize, values: &[f64], c: u8) -> CanFrame {
         let msg = [
             &VEHICLE_MOTION,
             &WHEEL_SPEEDS,

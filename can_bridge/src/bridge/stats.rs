@@ -73,6 +73,10 @@ pub struct Stats {
     pub rx_implausible_rate: u64,
     /// ... of which a brake-only wheel turned faster than the vehicle.
     pub rx_inconsistent: u64,
+    /// E2E-valid frames in sequence whose counter steps claim more time
+    /// than has passed since the last believed frame plus one cycle (a
+    /// burst, or a sender faster than its cycle); not used.
+    pub rx_faster_than_cycle: u64,
     /// Usable frames never believed: a second sender's sign (a repeated
     /// counter with other data, a jump, a restart) came before they had
     /// stood for the confirmation time.
@@ -160,6 +164,7 @@ impl Bridge {
             rx_implausible: rx.rx_implausible,
             rx_implausible_rate: rx.rx_implausible_rate,
             rx_inconsistent: rx.rx_inconsistent,
+            rx_faster_than_cycle: rx.rx_faster_than_cycle,
             rx_discarded: rx.rx_discarded,
             rx_length_errors: rx.rx_length_errors,
             rx_malformed: rx.rx_malformed,

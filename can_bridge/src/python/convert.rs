@@ -662,6 +662,7 @@ pub fn stats_dict<'py>(py: Python<'py>, s: &Stats) -> PyResult<Bound<'py, PyDict
     d.set_item("rx_implausible", s.rx_implausible)?;
     d.set_item("rx_implausible_rate", s.rx_implausible_rate)?;
     d.set_item("rx_inconsistent", s.rx_inconsistent)?;
+    d.set_item("rx_faster_than_cycle", s.rx_faster_than_cycle)?;
     d.set_item("rx_discarded", s.rx_discarded)?;
     d.set_item("rx_length_errors", s.rx_length_errors)?;
     d.set_item("rx_malformed", s.rx_malformed)?;
