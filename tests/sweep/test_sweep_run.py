@@ -310,6 +310,7 @@ PARTITION = textwrap.dedent(
 )
 
 
+@pytest.mark.slow  # four XLA processes; sharding over two devices is tests/batch/test_batch.py's test_sharded_over_two_cpu_devices, the parallel shards tests/sweep/test_sweep_shards.py's
 @pytest.mark.both_cores
 def test_four_devices_and_two_processes_give_the_same_table(tmp_path, capsys):
     r = subprocess.run(
