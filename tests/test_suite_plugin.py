@@ -5,6 +5,9 @@ timeout is the test's budget times AMPC_TEST_TIMEOUT_SCALE."""
 
 from __future__ import annotations
 
+import ast
+from pathlib import Path
+
 import pytest
 
 from ampc_jax.testing.budget import DEFAULT_SCALE, SCALE_ENV, budget, timeout_scale
@@ -13,6 +16,7 @@ from ampc_jax.testing.pytest_plugin import scaled_timeout_marker
 pytestmark = pytest.mark.timeout(60)
 
 PLUGIN = "ampc_jax.testing.pytest_plugin"
+TESTS = Path(__file__).resolve().parent
 
 FILE = """
 import time
@@ -83,3 +87,70 @@ def test_the_scale_is_read_from_the_environment(monkeypatch):
         monkeypatch.setenv(SCALE_ENV, bad)
         with pytest.raises(ValueError, match=SCALE_ENV):
             timeout_scale()
+
+
+def _clock_call(node) -> bool:
+    """``time.monotonic()``, ``time.perf_counter()``, ``time.time()`` (and their _ns)."""
+    return (
+        isinstance(node, ast.Call)
+        and isinstance(node.func, ast.Attribute)
+        and isinstance(node.func.value, ast.Name)
+        and node.func.value.id == "time"
+        and node.func.attr.removesuffix("_ns") in ("monotonic", "perf_counter", "time")
+    )
+
+
+def _wall_clock_asserts(tree: ast.AST) -> list[str]:
+    """Asserts that bound a measured duration from above: ``elapsed < 0.5`` where
+    ``elapsed = time.perf_counter() - t0``, or ``time.monotonic() - t0 < 10``."""
+    durations = {
+        target.id
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Assign)
+        and isinstance(node.value, ast.BinOp)
+        and isinstance(node.value.op, ast.Sub)
+        and any(_clock_call(side) for side in (node.value.left, node.value.right))
+        for target in node.targets
+        if isinstance(target, ast.Name)
+    }
+    found = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Assert):
+            continue
+        for cmp in ast.walk(node.test):
+            if not isinstance(cmp, ast.Compare) or not isinstance(cmp.ops[0], (ast.Lt, ast.LtE)):
+                continue
+            left = cmp.left
+            measured = (isinstance(left, ast.Name) and left.id in durations) or (
+                isinstance(left, ast.BinOp)
+                and isinstance(left.op, ast.Sub)
+                and any(_clock_call(side) for side in (left.left, left.right))
+            )
+            if measured:
+                found.append(f"line {node.lineno}: {ast.unparse(node.test)}")
+    return found
+
+
+def test_tests_assert_results_never_wall_clock_speed():
+    """No test bounds a measured duration from above (a loaded machine makes any
+    bound fail; speed is bench/'s): a hang is the test's timeout's to catch."""
+    assert _wall_clock_asserts(
+        ast.parse(
+            "t0 = time.perf_counter()\nelapsed = time.perf_counter() - t0\nassert elapsed < 0.5"
+        )
+    ) == ["line 3: elapsed < 0.5"]
+    assert _wall_clock_asserts(ast.parse("assert time.monotonic() - t0 < 10.0")) != []
+    found = {
+        str(path.relative_to(TESTS)): hits
+        for path in sorted(TESTS.rglob("*.py"))
+        if (hits := _wall_clock_asserts(ast.parse(path.read_text())))
+    }
+    assert not found, found
+
+
+def test_every_test_has_a_timeout_from_the_budget(pytestconfig):
+    """pyproject.toml's ``timeout`` gives every test without a marker its budget,
+    and the plugin that scales it is loaded (tests/conftest.py)."""
+    assert float(pytestconfig.getini("timeout")) > 0
+    assert pytestconfig.pluginmanager.hasplugin("timeout")
+    assert pytestconfig.pluginmanager.hasplugin(PLUGIN)
