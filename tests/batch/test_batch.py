@@ -24,7 +24,11 @@ def stack(datas):
     return jax.tree.map(lambda *x: jnp.stack(x), *datas)
 
 
+@pytest.mark.slow  # on one device; test_sharded_over_two_cpu_devices checks the same
 def test_matches_vmap_with_remainder_chunk():
+    """One device, 7 cases in chunks of 3. The default run's check is
+    test_sharded_over_two_cpu_devices (5 cases in chunks of 2 on two devices: a
+    remainder chunk too, the same comparison with vmap, each case's iterations)."""
     problems = [random_problem(seed, 2, shared="all") for seed in range(7)]
     solver = LocalExplicit(problems[0].topology, max_iter=5000)
     q = solver.params(tol_primal=1e-10, tol_dual=1e-10)
@@ -59,6 +63,7 @@ SCRIPT = textwrap.dedent(
     out = jax.jit(lambda d: map_scenarios(lambda x: solver.solve(x, q), d, chunk=2))(data)
     assert out.u.shape == ref.u.shape
     np.testing.assert_allclose(out.u, ref.u, rtol=1e-9, atol=1e-12)
+    np.testing.assert_array_equal(out.iterations, ref.iterations)  # each case's own
     print("ok", len(out.u.sharding.device_set))
     """
 )
