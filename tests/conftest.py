@@ -47,10 +47,20 @@ if os.environ.get("AMPC_TEST_XLA_OPT") != "1" and "optimization_level" not in os
     ).strip()
 
 import jax  # noqa: E402
+import pytest  # noqa: E402
 
 import ampc_jax  # noqa: F401, E402  (sets XLA_FLAGS before the CPU backend starts)
 
 jax.config.update("jax_enable_x64", True)
+
+# Timeouts and failures (ampc_jax/testing/pytest_plugin.py): every test's timeout
+# is its budget, the seconds it may take on an idle 2-core machine under
+# `.ci/run` (its `@pytest.mark.timeout(S)`, else pyproject.toml's `timeout`),
+# times AMPC_TEST_TIMEOUT_SCALE (default 3: two busy processes beside the suite
+# halve each worker's core, with a margin of 1.5); a test's own deadlines (a
+# subprocess's timeout, a wait for output) use ampc_jax.testing.budget.budget(S).
+# A failure is printed with its reason as it happens, not only at the end.
+pytest_plugins = ["ampc_jax.testing.pytest_plugin", "pytester"]
 
 
 # Tests that time things (the can_bridge bridge's tick and watchdog windows)
@@ -60,9 +70,57 @@ jax.config.update("jax_enable_x64", True)
 SERIAL_GROUP = "timing_and_both_cores"
 
 
-def pytest_collection_modifyitems(config, items):
-    import pytest
+# A module- or session-scoped fixture of the suite (a closed loop, a sweep, an
+# `ampc run`: 10 to 60 s each) is computed once per worker that needs it: the
+# tests that use one share an xdist group, so that one worker computes it once
+# (with the timing group where a test of that group uses it too).
+_TESTS_DIR = os.path.dirname(os.path.abspath(__file__))
 
+
+def _shared_fixtures(item) -> list[str]:
+    """The suite's own module- and session-scoped fixtures that ``item`` uses."""
+    import inspect
+
+    keys = []
+    info = getattr(item, "_fixtureinfo", None)
+    for name, defs in info.name2fixturedefs.items() if info else ():
+        fixturedef = defs[-1]
+        if fixturedef.scope not in ("module", "package", "session"):
+            continue
+        try:
+            source = inspect.getsourcefile(fixturedef.func) or ""
+        except TypeError:
+            continue
+        if os.path.abspath(source).startswith(_TESTS_DIR + os.sep):
+            keys.append(f"{os.path.relpath(source, _TESTS_DIR)}::{name}")
+    return sorted(keys)
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist's worker reads the groups into node ids
+def pytest_collection_modifyitems(config, items):
+    serial: set[str] = set()
     for item in items:
         if "tests/can_bridge/" in item.nodeid or item.get_closest_marker("both_cores"):
             item.add_marker(pytest.mark.xdist_group(SERIAL_GROUP))
+            serial.update(_shared_fixtures(item))
+    # fixtures used by one test together are one group (union-find over their keys)
+    parent: dict[str, str] = {}
+
+    def root(k: str) -> str:
+        while parent.setdefault(k, k) != k:
+            k = parent[k]
+        return k
+
+    todo = []
+    for item in items:
+        if item.get_closest_marker("xdist_group"):
+            continue
+        keys = _shared_fixtures(item)
+        if keys:
+            todo.append((item, keys))
+            for k in keys[1:]:
+                parent[root(k)] = root(keys[0])
+    joined = {root(k) for k in serial}
+    for item, keys in todo:
+        group = root(keys[0])
+        item.add_marker(pytest.mark.xdist_group(SERIAL_GROUP if group in joined else group))

@@ -9,10 +9,12 @@ into ``bench/`` (its result files under ``bench/results/`` included): a
 ``--smoke`` run writes no result file unless ``--out`` names one, which the
 tests put in ``tmp_path``.
 
-Each script's smoke run takes 4 to 23 s, most of it compiling: the whole file
-took 128 s pinned to one core of a shared machine (load average 2 to 3),
-less on an idle one. The bench_qp_peers test is skipped without jaxopt (the
-bench extra).
+Each script's smoke run takes 4 to 23 s, most of it compiling. The default run
+smokes the scripts whose smoke run is short; the scripts that only time what
+other tests check (sweeps on two devices, the peers, the KKT strategies, call
+overhead, layouts, the thunk graph, gradients, the learned start) run with
+``-m slow``. The bench_qp_peers test is skipped without jaxopt (the bench
+extra).
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import numpy as np
 import pytest
 
 import ampc_jax
+from ampc_jax.testing.budget import budget
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "bench"
@@ -62,7 +65,7 @@ def run_bench(script: str, *args: str, timeout: float) -> str:
         env=_shell_env(),
         capture_output=True,
         text=True,
-        timeout=timeout,
+        timeout=budget(timeout),
     )
     assert r.returncode == 0, (
         f"{script} {' '.join(args)} exited {r.returncode}\n"
@@ -84,6 +87,7 @@ def _rows(out: str, first_cell: str) -> list[list[str]]:
     ]
 
 
+@pytest.mark.slow  # timing of layouts; the batched solve's results are tests/batch's
 @pytest.mark.timeout(90)
 def test_bench_batched_layout():
     out = run_bench("bench_batched_layout.py", "--smoke", timeout=80)
@@ -104,6 +108,7 @@ def test_bench_batched_layout():
     assert "smoke run: no result file written" in out, out
 
 
+@pytest.mark.slow  # timing of calls; the calls' results are tests/admm's and tests/batch's
 @pytest.mark.timeout(120)
 def test_bench_call_overhead():
     out = run_bench("bench_call_overhead.py", "--smoke", timeout=110)
@@ -150,6 +155,7 @@ def test_bench_can_bridge(tmp_path):
     assert results["jax-compile"]["note"].startswith("JAX "), results["jax-compile"]
 
 
+@pytest.mark.slow  # a closed-loop sweep's timing; the loop's results are tests/closed_loop's
 @pytest.mark.timeout(120)
 def test_bench_closed_loop_sweep():
     out = run_bench("bench_closed_loop.py", "sweep", "--smoke", timeout=110)
@@ -232,6 +238,7 @@ def test_bench_closed_loop_table(tmp_path):
     assert rows["`dlc`"][1] == "driver alone", rows
 
 
+@pytest.mark.slow  # the KKT strategies' timing; their results are tests/formulations/test_local_explicit.py's
 @pytest.mark.timeout(120)
 def test_bench_local_explicit(tmp_path):
     path = tmp_path / "local_explicit.json"
@@ -312,6 +319,7 @@ def test_bench_rho():
     assert "[compiled: rho* solve 1, 169-point grid solve 1" in out, out
 
 
+@pytest.mark.slow  # a compile-and-time script; the batched step's results are tests/batch's
 @pytest.mark.timeout(120)
 def test_bench_thunk_graph():
     out = run_bench("bench_thunk_graph.py", "--smoke", timeout=110)
@@ -347,6 +355,7 @@ def test_bench_many_objectives():
     assert "smoke run: no result file written" in out, out
 
 
+@pytest.mark.slow  # two devices, two processes and a pinned peer for minutes; the sweep's results are tests/sweep's
 @pytest.mark.both_cores  # two XLA devices and two DAQP processes
 @pytest.mark.timeout(150)
 def test_bench_sweep(tmp_path):
@@ -368,6 +377,7 @@ def test_bench_sweep(tmp_path):
     assert doc["results"]["grad"]["grad_over_forward"] > 0, doc["results"]["grad"]
 
 
+@pytest.mark.slow  # the peers' throughput and latency runs; the formulations against Clarabel are tests/formulations'
 @pytest.mark.both_cores  # two XLA devices, two pinned peer processes, a pinned latency child
 @pytest.mark.timeout(150)
 def test_bench_peers(tmp_path):

@@ -15,6 +15,7 @@ import pytest
 from ampc_jax.batch import map_scenarios
 from ampc_jax.formulations import LocalExplicit
 from ampc_jax.generate import random_problem
+from ampc_jax.testing.budget import budget
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -23,7 +24,11 @@ def stack(datas):
     return jax.tree.map(lambda *x: jnp.stack(x), *datas)
 
 
+@pytest.mark.slow  # on one device; test_sharded_over_two_cpu_devices checks the same
 def test_matches_vmap_with_remainder_chunk():
+    """One device, 7 cases in chunks of 3. The default run's check is
+    test_sharded_over_two_cpu_devices (5 cases in chunks of 2 on two devices: a
+    remainder chunk too, the same comparison with vmap, each case's iterations)."""
     problems = [random_problem(seed, 2, shared="all") for seed in range(7)]
     solver = LocalExplicit(problems[0].topology, max_iter=5000)
     q = solver.params(tol_primal=1e-10, tol_dual=1e-10)
@@ -58,6 +63,7 @@ SCRIPT = textwrap.dedent(
     out = jax.jit(lambda d: map_scenarios(lambda x: solver.solve(x, q), d, chunk=2))(data)
     assert out.u.shape == ref.u.shape
     np.testing.assert_allclose(out.u, ref.u, rtol=1e-9, atol=1e-12)
+    np.testing.assert_array_equal(out.iterations, ref.iterations)  # each case's own
     print("ok", len(out.u.sharding.device_set))
     """
 )
@@ -70,7 +76,7 @@ def test_sharded_over_two_cpu_devices():
         env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
     ).strip()
     r = subprocess.run(
-        [sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=240
+        [sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=budget(240)
     )
     assert r.returncode == 0, r.stderr[-3000:]
     assert r.stdout.startswith("ok 2"), r.stdout
@@ -115,7 +121,7 @@ def test_sharded_batch_with_factorisations_does_not_deadlock():
             env=env,
             capture_output=True,
             text=True,
-            timeout=180,
+            timeout=budget(180),
         )
     except subprocess.TimeoutExpired:
         pytest.fail("sharded batched solve did not finish in 180 s (deadlock)")

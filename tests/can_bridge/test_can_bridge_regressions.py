@@ -130,9 +130,7 @@ def test_a_peer_reading_only_every_150_ms_gets_fresh_frames_and_the_last_stop_fr
         for i in range(25):
             bridge.set_command((-50.0,) * 4, i + 1)
             time.sleep(0.02)
-        t0 = time.monotonic()
-        bridge.stop()
-        assert time.monotonic() - t0 < 10.0  # stops, not hangs
+        bridge.stop()  # stops, not hangs (the test's timeout catches a hang)
         th.join(3)
     finally:
         os.close(fd)

@@ -10,6 +10,7 @@ import time
 import pytest
 
 import can_bridge
+from ampc_jax.testing.budget import budget
 from ampc_jax.testing.can_fault_peers import SerialAdapter
 from ampc_jax.testing.can_peers import STEER, CmdChecker, protect
 
@@ -70,7 +71,7 @@ def test_serial_adapter_init_frames_and_receive() -> None:
                 data = protect("SteeringState", STEER, c)
                 adapter.send_line(b"t2034" + data.hex().encode() + b"1A2B\r")
                 time.sleep(0.02)
-            end = time.monotonic() + 2
+            end = time.monotonic() + budget(2)
             while bridge.latest_state()["steering_angle_rad"] is None and time.monotonic() < end:
                 time.sleep(0.02)
             assert bridge.latest_state()["steering_angle_rad"] == pytest.approx(0.0456)

@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 
 import can_bridge
+from ampc_jax.testing.budget import budget
 from ampc_jax.testing.can_fault_peers import open_raw_host, read_all
 
 pytestmark = pytest.mark.timeout(60)
@@ -127,7 +128,11 @@ def test_tx_log_a_file_over_the_size_limit_names_the_file(tmp_path: Path) -> Non
         """
     )
     p = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, timeout=30, check=False
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=budget(30),
+        check=False,
     )
     assert p.returncode == 0, p.stderr
     counts, msg = p.stdout.strip().split("\n", 1)

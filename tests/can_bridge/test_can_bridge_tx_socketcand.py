@@ -22,6 +22,7 @@ from pathlib import Path
 import pytest
 
 import can_bridge
+from ampc_jax.testing.budget import budget
 from ampc_jax.testing.can_fault_peers import SocketcandBus, candump_tx, frame_ages
 from ampc_jax.testing.can_peers import CmdChecker
 
@@ -86,7 +87,7 @@ def _run(tmp_path: Path, srv: SocketcandBus, during, **kw) -> tuple[list, list, 
 def _stall_after_probe(stall: float):
     def during(srv: SocketcandBus, _b) -> None:
         srv.stall_after_probe()
-        end = time.monotonic() + 5
+        end = time.monotonic() + budget(5)
         while srv.reading.is_set() and time.monotonic() < end:
             time.sleep(0.001)
         assert not srv.reading.is_set(), "the server never stalled"

@@ -22,6 +22,7 @@ import e2e.p01
 import pytest
 
 import can_bridge
+from ampc_jax.testing.budget import budget
 from ampc_jax.testing.can_fault_peers import candump_tx, frame_ages, open_raw_host
 from ampc_jax.testing.can_peers import data_id
 from ampc_jax.vehicle.actuators import ACTUATORS, bridge_kwargs, load_limits
@@ -105,7 +106,7 @@ class RawReader:
 
     def read_into_a_frame(self, k: int) -> None:
         """Read byte by byte until ``k`` bytes of a torque line are read."""
-        end = time.monotonic() + 5
+        end = time.monotonic() + budget(5)
         while time.monotonic() < end:
             if not select.select([self.fd], [], [], 0.05)[0]:
                 continue

@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from ampc_jax.cli.cache import cache_problem
+from ampc_jax.testing.budget import budget
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -123,7 +124,7 @@ def _ampc_cache(flags: list[str], env: dict[str, str] | None = None):
     if env is None:
         e.pop("JAX_COMPILATION_CACHE_DIR", None)
     return subprocess.run([sys.executable, "-c", _SCRIPT, *flags], capture_output=True,
-                          text=True, timeout=100, env=e, cwd=ROOT)  # fmt: skip
+                          text=True, timeout=budget(100), env=e, cwd=ROOT)  # fmt: skip
 
 
 def _warnings(err: str) -> list[str]:

@@ -13,6 +13,7 @@ import pytest
 from ampc_jax.admm import SolverParams
 from ampc_jax.cli import build_parser, main
 from ampc_jax.closed_loop import SimConfig
+from ampc_jax.testing.budget import budget
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -167,7 +168,7 @@ def test_group_missing_an_influencing_agent_warns_in_one_line(tmp_path):
          "--json"],
         capture_output=True,
         text=True,
-        timeout=120,
+        timeout=budget(120),
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
     json.loads(r.stdout)

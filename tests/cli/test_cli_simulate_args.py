@@ -8,6 +8,7 @@ import pytest
 
 from ampc_jax.cli import build_parser, main
 from ampc_jax.cli.simulate import _parse_floats, _parse_settings
+from ampc_jax.testing.budget import budget
 from ampc_jax.vehicle import CruiseSettings, StabilitySettings
 
 pytestmark = pytest.mark.timeout(120)
@@ -135,7 +136,7 @@ def test_bad_duration_exits_2_without_traceback(tmp_path):
         [sys.executable, "-m", "ampc_jax.cli", *BASE, "--duration", "0", "--out", str(tmp_path)],
         capture_output=True,
         text=True,
-        timeout=170,
+        timeout=budget(170),
     )
     assert r.returncode == 2, r.stderr
     assert "Traceback" not in r.stderr

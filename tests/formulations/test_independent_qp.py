@@ -7,6 +7,10 @@ the cost summed as printed) on problems with what the generated ones lack: a
 per-step disturbance and reference, two outputs with a non-diagonal Q (or a
 singular one), an agent with two inputs and a non-diagonal R, a shared agent
 and an active general row with a per-step right-hand side.
+
+The default run checks each KKT path (dense, Woodbury factored, Riccati) on
+one problem each, both objective counts and a singular Q; ``-m slow`` adds the
+other pairings of path, objective count and Q (the same check, more compiles).
 """
 
 import jax
@@ -186,13 +190,13 @@ PERTURBATIONS = (
 @pytest.mark.parametrize(
     "n_obj,singular_q,path",
     [
-        (2, False, "dense"),
+        pytest.param(2, False, "dense", marks=pytest.mark.slow),
         (2, False, "woodbury_factored"),
         (3, False, "dense"),
-        (3, False, "woodbury"),
+        pytest.param(3, False, "woodbury", marks=pytest.mark.slow),
         (2, True, "dense"),
-        (2, True, "woodbury_factored"),
-        (2, False, "riccati"),
+        pytest.param(2, True, "woodbury_factored", marks=pytest.mark.slow),
+        pytest.param(2, False, "riccati", marks=pytest.mark.slow),
         (3, True, "riccati"),
     ],
 )

@@ -51,7 +51,12 @@ def compare_batch(problems, solver, rtol=1e-3, **params):
 
 @pytest.mark.parametrize(
     "n_obj,shared",
-    [(2, "chain"), (2, "all"), (3, "chain"), (3, "both")],
+    [
+        (2, "all"),
+        pytest.param(2, "chain", marks=SLOW),
+        pytest.param(3, "chain", marks=SLOW),
+        (3, "both"),
+    ],
 )
 def test_matches_integrated_optimum(n_obj, shared):
     problems = [random_problem(seed, n_obj, shared=shared) for seed in range(10)]
@@ -128,7 +133,7 @@ def test_dense_factorisation_matches_integrated_optimum(n_obj, shared):
     compare_batch(problems, solver)
 
 
-@pytest.mark.parametrize("shared", ["chain", "both"])
+@pytest.mark.parametrize("shared", [pytest.param("chain", marks=SLOW), "both"])
 def test_four_objectives_reach_the_integrated_optimum(shared):
     """Beyond the paper's two groups (paper-notes item 12): four objectives, shared agents."""
     problems = [random_problem(seed, 4, shared=shared) for seed in range(3)]
@@ -136,7 +141,7 @@ def test_four_objectives_reach_the_integrated_optimum(shared):
     assert active > 0
 
 
-@pytest.mark.parametrize("relaxation", [1.6, 0.8])
+@pytest.mark.parametrize("relaxation", [1.6, pytest.param(0.8, marks=SLOW)])
 def test_rho_scale_and_relaxation_keep_the_optimum(relaxation):
     problems = [random_problem(seed, 3, shared="both") for seed in range(6)]
     solver = LocalExplicit(problems[0].topology, **TIGHT)
@@ -412,7 +417,7 @@ def test_warm_state_shapes_are_checked():
     [
         pytest.param("woodbury", 0, marks=SLOW),
         ("woodbury_factored", 0),
-        ("woodbury_factored", 3),
+        pytest.param("woodbury_factored", 3, marks=SLOW),
         ("riccati", 0),
     ],
 )

@@ -5,6 +5,8 @@ from pathlib import Path
 
 import pytest
 
+from ampc_jax.testing.budget import budget
+
 # a closed loop, a simulation and a replay (about a minute): `pytest -m slow`
 pytestmark = [pytest.mark.timeout(300), pytest.mark.both_cores, pytest.mark.slow]
 
@@ -21,7 +23,9 @@ def test_runtime_notebook_executes(tmp_path, monkeypatch):
     assert first.startswith("import os\n") and "XLA_FLAGS" in first
     monkeypatch.setenv("AMPC_NOTEBOOK_RUN_SECONDS", "6")
     monkeypatch.setenv("PYTHONPATH", str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    nbclient.NotebookClient(nb, timeout=240, kernel_name="python3").execute(cwd=str(tmp_path))
+    nbclient.NotebookClient(nb, timeout=budget(240), kernel_name="python3").execute(
+        cwd=str(tmp_path)
+    )
     text = "".join(
         o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
     )

@@ -5,6 +5,8 @@ from pathlib import Path
 
 import pytest
 
+from ampc_jax.testing.budget import budget
+
 pytestmark = [pytest.mark.timeout(400), pytest.mark.slow, pytest.mark.both_cores]
 
 NOTEBOOK = Path(__file__).parents[2] / "notebooks" / "sweeps_and_tuning.ipynb"
@@ -16,7 +18,9 @@ def test_sweeps_notebook_executes(tmp_path):
     nb = nbformat.read(NOTEBOOK, as_version=4)
     first = next(c for c in nb.cells if c.cell_type == "code").source
     assert first.index("XLA_FLAGS") < first.index("import jax")
-    nbclient.NotebookClient(nb, timeout=300, kernel_name="python3").execute(cwd=str(tmp_path))
+    nbclient.NotebookClient(nb, timeout=budget(300), kernel_name="python3").execute(
+        cwd=str(tmp_path)
+    )
     text = "".join(
         o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
     )

@@ -4,6 +4,8 @@ from pathlib import Path
 
 import pytest
 
+from ampc_jax.testing.budget import budget
+
 pytestmark = pytest.mark.timeout(300)
 
 NOTEBOOK = Path(__file__).parents[2] / "notebooks" / "cruise_control_walkthrough.ipynb"
@@ -19,7 +21,9 @@ def test_walkthrough_notebook_executes(tmp_path):
     assert first.startswith("import os\n") and "XLA_FLAGS" in first
     assert first.index("jax_enable_x64") < first.index("from ampc_jax")
     # run where its figures may be written (notebook_output/ in the working directory)
-    nbclient.NotebookClient(nb, timeout=240, kernel_name="python3").execute(cwd=str(tmp_path))
+    nbclient.NotebookClient(nb, timeout=budget(240), kernel_name="python3").execute(
+        cwd=str(tmp_path)
+    )
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notebook_output"]  # nothing else
     text = "".join(
         o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])

@@ -10,6 +10,8 @@ import sys
 import time
 from pathlib import Path
 
+from ampc_jax.testing.budget import budget
+
 ROOT = Path(__file__).resolve().parents[2]
 SCENARIO = "cruise_lane_change"
 RUN_SECONDS = 10.0
@@ -22,7 +24,7 @@ def ampc(*args: str, timeout: float, check: bool = True) -> subprocess.Completed
         [sys.executable, "-m", "ampc_jax.cli", *args],
         capture_output=True,
         text=True,
-        timeout=timeout,
+        timeout=budget(timeout),
         env=env,
         cwd=ROOT,
     )
@@ -81,7 +83,7 @@ class RunProcess:
 
     def wait_for_ticks(self, n: int, timeout: float) -> int:
         """Read progress lines until one reports at least ``n`` ticks; returns its count."""
-        end = time.monotonic() + timeout
+        end = time.monotonic() + budget(timeout)
         assert self.proc.stdout is not None
         for line in self.proc.stdout:
             self.lines.append(line)
@@ -96,7 +98,7 @@ class RunProcess:
 
     def finish(self, timeout: float) -> tuple[int, str, str]:
         """Wait for the end: (exit code, all of stdout, stderr)."""
-        out, err = self.proc.communicate(timeout=timeout)
+        out, err = self.proc.communicate(timeout=budget(timeout))
         return self.proc.returncode, "".join(self.lines) + out, err
 
     def kill_all(self) -> None:

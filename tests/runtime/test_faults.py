@@ -17,6 +17,7 @@ import pyarrow.parquet as pq
 import pytest
 
 import can_bridge
+from ampc_jax.testing.budget import budget
 
 # Two runs of 12 and 7 s over the pty: behind the slow marker, so that the
 # default suite stays under 10 minutes on 2 cores (`pytest -m slow` runs them).
@@ -53,7 +54,7 @@ def _run(out: Path, rt_args: list[str], *args: str, reset_at: float | None = Non
             if float(line.split()[1].split("/")[0]) >= reset_at:
                 os.kill(proc.pid, signal.SIGUSR1)
                 reset_at = None
-    assert proc.wait(timeout=60) == 0, "".join(lines[-30:])
+    assert proc.wait(timeout=budget(60)) == 0, "".join(lines[-30:])
     frames = pq.read_table(out / "plant" / "frames.parquet").to_pydict()
     return {
         "run": json.loads((out / "run.json").read_text()),

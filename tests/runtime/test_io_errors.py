@@ -16,6 +16,8 @@ from pathlib import Path
 import pytest
 from rt_procs import ROOT, SCENARIO
 
+from ampc_jax.testing.budget import budget
+
 pytestmark = pytest.mark.timeout(300)
 
 LIMIT = 4096  # bytes: a header and run.json fit, a few dozen ticks do not
@@ -35,7 +37,7 @@ def _python(script: str, limit: int = LIMIT) -> subprocess.CompletedProcess:
         [sys.executable, "-c", head + textwrap.dedent(script)],
         capture_output=True,
         text=True,
-        timeout=200,
+        timeout=budget(200),
         env=env,
         cwd=ROOT,
     )

@@ -19,6 +19,7 @@ import pytest
 from rt_procs import SCENARIO, RunProcess
 
 from ampc_jax.cli import main
+from ampc_jax.testing.budget import budget
 
 pytestmark = [pytest.mark.both_cores]
 
@@ -68,12 +69,12 @@ def test_sigkill_keeps_every_tick_up_to_the_kill_and_the_run_replays(
     out = tmp_path / "run"
     run = RunProcess(*_args(out, rt_args))
     try:
-        end = time.monotonic() + 240
+        end = time.monotonic() + budget(240)
         while (seen := _journal_rows(out / "ticks.jsonl")) < 10:
             assert run.proc.poll() is None and time.monotonic() < end, seen
             time.sleep(0.01)
         os.kill(run.proc.pid, signal.SIGKILL)  # no clean-up of any kind
-        run.proc.wait(timeout=10)
+        run.proc.wait(timeout=budget(10))
     finally:
         run.kill_all()  # the plant, orphaned
     assert not (out / "ticks.parquet").exists()

@@ -21,6 +21,7 @@ import pytest
 from rt_procs import ampc
 
 import can_bridge
+from ampc_jax.testing.budget import budget
 
 pytestmark = [pytest.mark.both_cores]
 
@@ -198,16 +199,16 @@ def test_killing_the_runtime_leaves_no_stale_torque(tmp_path: Path, rt_args) -> 
         args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, text=True
     )
     # wait for actuation (the progress line), then kill -9: no stop sequence
-    t_end = time.monotonic() + 120
+    t_end = time.monotonic() + budget(120)
     assert proc.stdout is not None
     for line in proc.stdout:
         if line.startswith("t ") and "sent" in line and float(line.split()[1].split("/")[0]) > 1.5:
             break
         assert time.monotonic() < t_end, "no actuation"
     os.kill(proc.pid, signal.SIGKILL)
-    proc.wait(timeout=10)
+    proc.wait(timeout=budget(10))
     summary = tmp_path / "plant" / "plant.json"
-    t_end = time.monotonic() + 60
+    t_end = time.monotonic() + budget(60)
     while not summary.exists():
         assert time.monotonic() < t_end, "the plant did not finish"
         time.sleep(0.2)

@@ -16,6 +16,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from ampc_jax.cli import main
+from ampc_jax.testing.budget import budget
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -309,10 +310,15 @@ PARTITION = textwrap.dedent(
 )
 
 
+@pytest.mark.slow  # four XLA processes; sharding over two devices is tests/batch/test_batch.py's test_sharded_over_two_cpu_devices, the parallel shards tests/sweep/test_sweep_shards.py's
 @pytest.mark.both_cores
 def test_four_devices_and_two_processes_give_the_same_table(tmp_path, capsys):
     r = subprocess.run(
-        [sys.executable, "-c", PARTITION], env=_env(4), capture_output=True, text=True, timeout=200
+        [sys.executable, "-c", PARTITION],
+        env=_env(4),
+        capture_output=True,
+        text=True,
+        timeout=budget(200),
     )
     assert r.returncode == 0, r.stderr[-3000:]
     assert "partitioned 4" in r.stdout
@@ -323,7 +329,7 @@ def test_four_devices_and_two_processes_give_the_same_table(tmp_path, capsys):
         env=_env(),
         capture_output=True,
         text=True,
-        timeout=200,
+        timeout=budget(200),
     )
     assert r.returncode == 0, r.stderr[-3000:]
     with socket.socket() as s:
@@ -340,7 +346,7 @@ def test_four_devices_and_two_processes_give_the_same_table(tmp_path, capsys):
         )
         for k in range(2)
     ]
-    outs = [p.communicate(timeout=240) for p in procs]
+    outs = [p.communicate(timeout=budget(240)) for p in procs]
     for p, (_, e) in zip(procs, outs, strict=True):
         assert p.returncode == 0, e[-3000:]
     assert "on 4 device(s), 2 process(es)" in outs[0][0]

@@ -14,6 +14,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from ampc_jax.cli import main
+from ampc_jax.testing.budget import budget
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -44,7 +45,7 @@ def shards(tmp_path_factory):
         )
         for i in range(N)
     ]
-    outs = [p.communicate(timeout=240) for p in procs]
+    outs = [p.communicate(timeout=budget(240)) for p in procs]
     for i, (p, (o, e)) in enumerate(zip(procs, outs, strict=True)):
         assert p.returncode == 0, e[-3000:]
         assert f"shard {i}/{N}: 24 rows" in o and "1 chunk(s) run" in o, o

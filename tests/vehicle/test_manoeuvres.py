@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from ampc_jax.testing.budget import budget
 from ampc_jax.vehicle import CONTROL_DT, VehicleParams
 from ampc_jax.vehicle.cruise import cruise_wheel_torques
 from ampc_jax.vehicle.manoeuvres import (
@@ -170,5 +171,7 @@ def test_scenarios_are_float64_numpy_whatever_x64_at_import():
         "b = m.stack_scenarios(list(m.SCENARIOS.values()))\n"
         "assert b.mu.dtype == np.float64 and float(b.mu[1]) == 0.3\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=budget(60)
+    )
     assert out.returncode == 0, out.stderr

@@ -1,7 +1,5 @@
 """Tests of ampc_jax.vehicle.plant against closed-form limits and a fine-step reference."""
 
-import time
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -337,13 +335,3 @@ def test_measure_fields():
     assert np.all(np.asarray(m.slip[2:]) > 0)  # driven wheels
     # steady state: lateral forces balance m a_y approximately
     assert float(jnp.sum(m.F_y)) == pytest.approx(P.m * float(s.v_x * s.r), rel=0.03)
-
-
-def test_ten_seconds_faster_than_real_time():
-    s0 = initial_state(20.0, P)
-    out = run(s0, 0.02, jnp.zeros(4), 1.0, 200)
-    jax.block_until_ready(out)
-    t0 = time.perf_counter()
-    jax.block_until_ready(run(s0, 0.02, jnp.zeros(4), 1.0, 200))
-    elapsed = time.perf_counter() - t0
-    assert elapsed < 0.5  # target is well under 0.1 s; loose bound for loaded CI machines
