@@ -151,7 +151,11 @@ def test_bench_can_bridge(tmp_path):
     for name, r in results.items():
         assert any(line.startswith(f"{name} ") for line in out.splitlines()), out
         assert r["ticks"] == 100, r
-        assert r["peer"]["frames"] > 0 and r["peer"]["bad_crc"] == 0, r
+        # a line the peer has not drained within one period is cut on purpose, so
+        # that its CRC fails, and counted (docs/bus-safety.md, "No frame older
+        # than one period"): a peer starved by the compiles may see those; any
+        # other bad CRC is a fault
+        assert r["peer"]["frames"] > 0 and r["peer"]["bad_crc"] <= r["tx_stale_dropped"], r
     assert results["jax-compile"]["note"].startswith("JAX "), results["jax-compile"]
 
 

@@ -372,9 +372,9 @@ def add_tune_command(sub: Any) -> None:
         choices=("solver", "weights", "warm_start"),
         default="solver",
         help="what to tune: the solver's speed, the closed loop's weights or a learned "
-        "start (default: solver); weights with the defaults takes about 15 min on 2 busy "
-        "cores (8.7 s an Adam step at load 11, bench/bench_compile.py), less with fewer "
-        "--cases or --steps",
+        "start; weights with the defaults takes about 15 min on 2 busy cores (8.7 s an "
+        "Adam step at load 11, bench/bench_compile.py), less with fewer --cases or "
+        "--steps (default: solver)",
     )
     p.add_argument(
         "--cases",
