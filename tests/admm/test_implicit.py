@@ -26,7 +26,7 @@ pytestmark = pytest.mark.timeout(300)
 
 TOL = 1e-24  # eq.Convergence on squared norms: residual norms ~1e-12
 STEP = 1e-5  # central-difference step on every parameter
-RTOL = 1e-5  # the accuracy target
+RTOL = 1e-5  # the implicit gradient's accuracy target (docs/tuning.md)
 
 # (log rho scale per objective, relaxation, factor on Q_0, factor on R); alpha 1.3
 THETA = (jnp.zeros(2), jnp.asarray(1.3), jnp.asarray(1.0), jnp.asarray(1.0))

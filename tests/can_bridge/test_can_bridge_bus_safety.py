@@ -1,6 +1,5 @@
-"""Issue 29, the bus under attack and faults: one test per finding of the
-bridge's side (items 1, 2, 3, 4, 13), each failing on the bridge before its
-fix. Peers are independent of the bridge: python-can's slcan and socketcand
+"""The bus under attack and faults: one test per rule of the bridge's side
+(docs/bus-safety.md), each failing on a bridge without the rule. Peers are independent of the bridge: python-can's slcan and socketcand
 interfaces, a socketcand server written here that relays between its
 clients as one bus (ampc_jax.testing.can_fault_peers), cantools and autosar-e2e for every
 frame (ampc_jax.testing.can_peers). The tests assert behaviour (a ramp from zero, no stale

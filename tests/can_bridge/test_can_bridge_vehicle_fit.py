@@ -1,5 +1,5 @@
-"""Issue 21, "can_bridge fit for a real vehicle": one test (or a few) per
-finding, each failing on the bridge as it was and passing now. Peers are
+"""can_bridge fit for a real vehicle: one test (or a few) per rule, each
+failing on a bridge without it. Peers are
 independent: python-can's slcan interface over the pty, a socketcand server
 and an SLCAN adapter written here (ampc_jax.testing.can_fault_peers), cantools decoding from the
 shipped DBC, autosar-e2e checking every CRC (ampc_jax.testing.can_peers)."""

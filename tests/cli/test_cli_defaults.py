@@ -1,6 +1,6 @@
 """One source of solver defaults per example: `ampc sweep` runs the example's
 relaxation and Anderson memory, as `simulate` and `tune --objective warm_start`
-do, and says so in its header line (issue 31 item 4)."""
+do, and says so in its header line."""
 
 import json
 

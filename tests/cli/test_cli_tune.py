@@ -89,7 +89,7 @@ def test_simulate_uses_the_params_file(tmp_path, capsys):
     assert f"--params {path}: example: " in capsys.readouterr().err
 
 
-# ------------------------------------------------------- bounds that say why (issue 29, 10)
+# ------------------------------------------------------- bounds that say why
 def _doc(**fields):
     return {"format": "ampc-params/1", **fields}
 

@@ -1,6 +1,6 @@
 """A tuned-parameters file records the solver settings it was tuned under, and a
 command applying it under other settings warns once; `--set` keeps the file's
-bounds (issue 31 item 4, issue 32 item 4)."""
+bounds."""
 
 import json
 

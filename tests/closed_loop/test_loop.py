@@ -376,7 +376,7 @@ def test_forward_derivative_through_the_closed_loop(sweep):
     [("cruise_lane_change", 15), ("stability_launch_brake", 15), ("stability_dlc", 25)],
 )
 def test_headline_targets_of_the_full_manoeuvres(scenario, max_iterations):
-    """The issue's closed-loop targets on the whole manoeuvre at the defaults
+    """The closed-loop targets on the whole manoeuvre at the defaults
     (README "Targets"): Local Explicit within eps at every step, at most 15 / 25
     iterations, e_sub p95 under 5 Nm against the converged shadow, no warnings."""
     m = simulate(scenario).metrics()

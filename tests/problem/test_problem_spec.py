@@ -325,7 +325,7 @@ def test_semidefinite_weight_and_one_sided_bounds_are_accepted():
     assert p.topology.n_c == 6
 
 
-# ----------------------------------------------------- sizes and magnitudes (issue 29, 11)
+# ----------------------------------------------------- sizes and magnitudes
 def _to_file(tmp_path, d, name="p.json"):
     path = tmp_path / name
     path.write_text(json.dumps(d))

@@ -97,11 +97,11 @@ class _Bar:
 
 
 def test_a_sweep_never_joins_rows_of_another_spec(tmp_path, capsys, monkeypatch):
-    """Issue 29, 8: with sweep.json deleted, a rerun with another grid joined the
-    old grid's chunks under the new spec, a foreign valid chunk was joined, and a
-    corrupt chunk read "ampc: error: --Could not open ...". Every chunk carries
+    """With sweep.json deleted, a rerun with another grid must not join the old
+    grid's chunks under the new spec, nor a foreign valid chunk, and a corrupt
+    chunk is named. Every chunk carries
     its spec's hash and cases; anything else is refused naming the file.
-    Issue 31, 5: the bar moves after every call of the program, not per chunk."""
+    The bar moves after every call of the program, not per chunk."""
     import tqdm
 
     import ampc_jax.sweep.run as run
@@ -230,8 +230,8 @@ def test_a_chunk_is_known_by_its_content_not_its_label(tmp_path, capsys):
 
 
 def test_memory_is_estimated_before_a_sweep_starts(tmp_path, capsys, monkeypatch):
-    """Issue 29, 12: 10^7 rho points ran into XLA's RESOURCE_EXHAUSTED (184 GB)
-    and --chunk 10**9 padded every chunk to 10^9 cases. The grid, a call, a
+    """10^7 rho points would run into XLA's RESOURCE_EXHAUSTED (184 GB) and
+    --chunk 10**9 would pad every chunk to 10^9 cases. The grid, a call, a
     chunk's rows and the joined table are estimated up front: refused naming
     the flag and the estimate, or (a chunk beyond the cases) one chunk of them."""
     import ampc_jax.sweep.run as run
