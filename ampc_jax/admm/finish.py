@@ -57,6 +57,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .linalg import bmm as _mm
+from .linalg import bmtm as _mtm
+from .linalg import bmtv as _mtv
+from .linalg import bmv as _mv
+
 __all__ = [
     "FINISHES",
     "FINISH_CORRECTIONS",
@@ -150,22 +155,6 @@ def _guarded_inverse(M: Any) -> tuple[Any, Any]:
         B = jnp.where(sel_r, jnp.swapaxes(new, -1, -2), B)
         A = jnp.where(sel_c, new, B)
     return -A, ratio
-
-
-def _mv(M: Any, x: Any) -> Any:
-    return jnp.sum(M * x[..., None, :], axis=-1)
-
-
-def _mtv(M: Any, x: Any) -> Any:
-    return jnp.sum(M * x[..., :, None], axis=-2)
-
-
-def _mm(M: Any, N: Any) -> Any:
-    return jnp.sum(M[..., :, :, None] * N[..., None, :, :], axis=-2)
-
-
-def _mtm(M: Any, N: Any) -> Any:
-    return jnp.sum(M[..., :, :, None] * N[..., :, None, :], axis=-3)
 
 
 def solve_eqp(fd: FinishData, active: Any, n_box: int) -> tuple[Any, Any, Any]:

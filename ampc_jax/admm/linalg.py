@@ -18,6 +18,10 @@ import jax.numpy as jnp
 import numpy as np
 
 __all__ = [
+    "bmm",
+    "bmtm",
+    "bmtv",
+    "bmv",
     "SWEEP_MAX",
     "SWEEP_MAX_DENSE",
     "apply_blocks",
@@ -201,3 +205,26 @@ def woodbury_inverse(Yu: Any, Qh: Any, B: Any, horizon: int) -> Any:
     Binv, W, P = woodbury_parts(Yu, Qh, B, horizon)
     inv = block_diag(Binv, horizon) - jnp.swapaxes(W, 1, 2) @ P @ W
     return 0.5 * (inv + jnp.swapaxes(inv, 1, 2))
+
+
+# Batched small products as fused broadcast sums (XLA:CPU fuses them with the
+# work around them, where a dot is a kernel of its own): the Riccati sweeps'
+# and the exact finish's.
+def bmv(M: Any, x: Any) -> Any:
+    """M x for M (..., a, b), x (..., b): a fused broadcast sum."""
+    return jnp.sum(M * x[..., None, :], axis=-1)
+
+
+def bmtv(M: Any, x: Any) -> Any:
+    """M' x for M (..., a, b), x (..., a)."""
+    return jnp.sum(M * x[..., :, None], axis=-2)
+
+
+def bmm(M: Any, N: Any) -> Any:
+    """M N for M (..., a, b), N (..., b, c)."""
+    return jnp.sum(M[..., :, :, None] * N[..., None, :, :], axis=-2)
+
+
+def bmtm(M: Any, N: Any) -> Any:
+    """M' N for M (..., b, a), N (..., b, c)."""
+    return jnp.sum(M[..., :, :, None] * N[..., :, None, :], axis=-3)

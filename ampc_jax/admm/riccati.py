@@ -41,6 +41,11 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from .linalg import bmm as _mm
+from .linalg import bmtm as _mtm
+from .linalg import bmtv as _mtv
+from .linalg import bmv as _mv
+
 __all__ = [
     "RiccatiFactor",
     "factor",
@@ -64,26 +69,6 @@ class RiccatiFactor(NamedTuple):
     Bu: Any
     Ginv: Any
     L: Any
-
-
-def _mv(M: Any, x: Any) -> Any:
-    """M x for M (..., a, b), x (..., b): a fused broadcast sum."""
-    return jnp.sum(M * x[..., None, :], axis=-1)
-
-
-def _mtv(M: Any, x: Any) -> Any:
-    """M' x for M (..., a, b), x (..., a)."""
-    return jnp.sum(M * x[..., :, None], axis=-2)
-
-
-def _mm(M: Any, N: Any) -> Any:
-    """M N for M (..., a, b), N (..., b, c)."""
-    return jnp.sum(M[..., :, :, None] * N[..., None, :, :], axis=-2)
-
-
-def _mtm(M: Any, N: Any) -> Any:
-    """M' N for M (..., b, a), N (..., b, c)."""
-    return jnp.sum(M[..., :, :, None] * N[..., :, None, :], axis=-3)
 
 
 def _sym(M: Any) -> Any:
